@@ -1,0 +1,25 @@
+"""Locations of the data shipped with the package (robot models, default tosses)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+PACKAGE_DIR = Path(__file__).resolve().parent
+"""The installed ``studio`` package folder."""
+
+DATA_DIR = PACKAGE_DIR / "data"
+"""Default data shipped with the package (toss recordings, ...)."""
+
+
+def robots_dir() -> Path:
+    """Folder holding the robot descriptions (``robots/`` in a checkout).
+
+    In a source checkout (editable install) this is the repository's ``robots/``; in a
+    wheel the folder is packed as ``studio/_robots``.
+    """
+    for candidate in (PACKAGE_DIR.parent / "robots", PACKAGE_DIR / "_robots"):
+        if candidate.is_dir():
+            return candidate
+    raise FileNotFoundError(
+        f"robot descriptions not found: looked in {PACKAGE_DIR.parent / 'robots'} and {PACKAGE_DIR / '_robots'}"
+    )
