@@ -1,0 +1,114 @@
+"""Serve parameters: genome round trips, normal convention, serve JSON validation."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from studio.errors import DataFileError, InvalidInputError
+from studio.serve import (
+    GenomeBounds,
+    HandServe,
+    ServeParams,
+    load_serve,
+    racket_normal,
+    save_serve,
+    serve_from_json,
+    yaw_roll_from_normal,
+)
+
+
+def test_normal_convention() -> None:
+    np.testing.assert_allclose(racket_normal(math.pi / 2, 0.0), [1, 0, 0], atol=1e-15)
+    np.testing.assert_allclose(racket_normal(math.pi, 0.0), [0, 1, 0], atol=1e-15)
+    np.testing.assert_allclose(racket_normal(math.pi / 2, math.pi / 2), [0, 0, 1], atol=1e-15)
+    # positive roll opens the face (normal tilts up)
+    assert racket_normal(math.pi / 2, 0.3)[2] > 0
+
+
+def test_yaw_roll_inverse() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        yaw = rng.uniform(-math.pi / 2, 3 * math.pi / 2)
+        roll = rng.uniform(-math.pi / 2 + 1e-6, math.pi / 2 - 1e-6)
+        y2, r2 = yaw_roll_from_normal(racket_normal(yaw, roll))
+        assert y2 == pytest.approx(yaw, abs=1e-9) and r2 == pytest.approx(roll, abs=1e-9)
+
+
+def test_genome_round_trip_exact() -> None:
+    bounds = GenomeBounds()
+    rng = np.random.default_rng(1)
+    for _ in range(100):
+        z = rng.uniform(0, 1, 10)
+        p = ServeParams.denormalize(z, bounds)
+        np.testing.assert_allclose(p.normalize(bounds), z, atol=1e-12)
+        assert ServeParams.from_vector(p.to_vector()) == p
+    mid = ServeParams.denormalize(np.full(10, 0.5), bounds)
+    assert mid.velocity == (0.0, 0.0, 0.0) and mid.offset == (0.0, 0.0, 0.0)
+    assert mid.yaw == pytest.approx(math.pi / 2)
+    # the 7-gene form keeps offsets at zero
+    assert ServeParams.denormalize(np.full(7, 0.5), bounds).offset == (0.0, 0.0, 0.0)
+
+
+def test_paper_bounds() -> None:
+    low, high = GenomeBounds().lows_highs()
+    np.testing.assert_allclose(high[1:4], [10, 5, 5])
+    np.testing.assert_allclose(high[7:], [0.07] * 3)
+    assert high[4] - low[4] == pytest.approx(2 * math.pi)
+
+
+@pytest.mark.parametrize("field,value", [("tau", float("nan")), ("yaw", float("inf")), ("t_return", -0.1)])
+def test_bad_params_rejected(field: str, value: float) -> None:
+    kwargs = dict(tau=0.8, velocity=(3.0, 0.0, 1.0), yaw=1.5, roll=0.1, t_return=0.7)
+    kwargs[field] = value
+    with pytest.raises(InvalidInputError, match=field):
+        ServeParams(**kwargs)  # type: ignore[arg-type]
+
+
+def test_serve_file_round_trip(tmp_path: Path) -> None:
+    serve = HandServe(
+        name="fast topspin",
+        side="left",
+        params=ServeParams(tau=0.81, velocity=(6.0, -0.5, 1.5), yaw=1.6, roll=-0.2, offset=(0.01, 0, 0)),
+        notes="demo",
+        extra={"author": "me"},
+    )
+    path = save_serve(tmp_path / "s.json", serve)
+    assert load_serve(path) == serve
+
+
+@pytest.mark.parametrize(
+    "mutate,field",
+    [
+        (lambda d: d.pop("name"), "name"),
+        (lambda d: d.__setitem__("side", "middle"), "side"),
+        (lambda d: d["params"].__setitem__("velocity", [1, 2]), "params.velocity"),
+        (lambda d: d["params"].__setitem__("tau", "soon"), "params.tau"),
+        (lambda d: d["params"].__setitem__("spin", 3), "params"),
+        (lambda d: d["params"].pop("roll"), "params.roll"),
+        (lambda d: d.__setitem__("schema", "other@9"), "schema"),
+    ],
+)
+def test_bad_serve_json_names_field(mutate, field: str) -> None:  # type: ignore[no-untyped-def]
+    doc = {
+        "schema": "serve-studio/serve@1",
+        "name": "x",
+        "side": "right",
+        "params": {"tau": 0.8, "velocity": [3, 0, 1], "yaw": 1.57, "roll": 0.0},
+    }
+    mutate(doc)
+    with pytest.raises(DataFileError, match=f"my.json: .*{field.replace('.', '[.]')}"):
+        serve_from_json(doc, source="my.json")
+
+
+def test_corrupt_file_rejected(tmp_path: Path) -> None:
+    path = tmp_path / "bad.json"
+    path.write_text("{not json")
+    with pytest.raises(DataFileError, match="bad.json.*not valid JSON"):
+        load_serve(path)
+    with pytest.raises(DataFileError, match="cannot read"):
+        load_serve(tmp_path / "missing.json")
