@@ -21,6 +21,7 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from studio.ball import spin_components
 from studio.court import DEFAULT_COURT
 from studio.errors import InvalidInputError
 
@@ -32,27 +33,17 @@ def velocity_frame(v: npt.ArrayLike) -> npt.NDArray[np.float64]:
     """Rows e_x, e_y, e_z (3, 3) of the paper's velocity-aligned frame for velocity v (3,).
 
     For a (near) vertical velocity the horizontal direction is undefined; e_x's
-    horizontal part then falls back to +X.
+    horizontal part then falls back to +X (as :func:`studio.ball.spin_components`).
     """
-    v = np.asarray(v, dtype=float)
-    speed = float(np.linalg.norm(v))
-    ex = v / speed if speed > 1e-9 else np.array([1.0, 0.0, 0.0])
-    ey = np.cross([0.0, 0.0, 1.0], ex)
-    n = float(np.linalg.norm(ey))
-    ey = ey / n if n > 1e-9 else np.array([0.0, 1.0, 0.0])
-    ez = np.cross(ex, ey)
+    # spin_components(v, e_i) = (e_y[i], e_z[i], e_x[i]): project the unit axes.
+    ey, ez, ex = (np.asarray(c, dtype=float) for c in spin_components(np.broadcast_to(np.asarray(v, float), (3, 3)), np.eye(3)))
     return np.stack([ex, ey, ez])
 
 
-def spin_components(v: npt.ArrayLike, w: npt.ArrayLike) -> tuple[float, float, float]:
-    """(top/back w_tb = w.e_y, side w_ss = w.e_z, cork w.e_x) [rad/s] in the velocity frame.
-
-    Topspin > 0, backspin < 0. Sidespin > 0 is a counter-clockwise spin seen from above
-    (the Magnus force w x v then points to the left of the flight direction).
-    """
-    ex, ey, ez = velocity_frame(v)
-    w = np.asarray(w, dtype=float)
-    return float(w @ ey), float(w @ ez), float(w @ ex)
+def spin_scalars(v: npt.ArrayLike, w: npt.ArrayLike) -> tuple[float, float, float]:
+    """(top/back, side, cork) [rad/s] of one ball state as floats; see :func:`studio.ball.spin_components`."""
+    tb, ss, ck = spin_components(v, w)
+    return float(tb), float(ss), float(ck)
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,7 +148,7 @@ def reward(
     d = float(np.hypot(p2[0] - wt.target[0], p2[1] - wt.target[1]))
     r_pos = wt.g_pos * math.exp(-(d**2) / (2 * wt.pos_sigma**2))
     r_vel = wt.g_vel_xy * float(np.hypot(v2[0], v2[1])) / wt.v_xy_ref + wt.g_vel_z * abs(float(v2[2])) / wt.v_z_ref
-    tb, ss, _ = spin_components(v2, w2)
+    tb, ss, _ = spin_scalars(v2, w2)
     tb_hat = float(np.clip(tb, -wt.spin_max, wt.spin_max)) / wt.spin_max
     ss_hat = float(np.clip(ss, -wt.spin_max, wt.spin_max)) / wt.spin_max
     r_topback = wt.g_top * max(0.0, tb_hat) + wt.g_back * max(0.0, -tb_hat)

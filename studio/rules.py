@@ -203,7 +203,8 @@ def check_serve(outcome: ServeOutcome, *, params: RuleParams = RuleParams(), cou
     results["multiple_racket_contacts"] = (len(racket) <= 1, f"{len(racket)} racket contact(s)")
 
     after = [c for c in contacts if strike_t is not None and c.t > strike_t]
-    bounces = [c for c in after if c.kind == "table"]
+    # A hit on the vertical side of the table top ("side") is not on the playing surface.
+    bounces = [c for c in after if c.kind == "table" and getattr(c, "part", "top") != "side"]
     results["two_bounces"] = (len(bounces) >= 2, f"{len(bounces)} table bounce(s) after the strike")
     b1 = bounces[0] if bounces else None
     results["first_bounce_side"] = (
@@ -211,7 +212,10 @@ def check_serve(outcome: ServeOutcome, *, params: RuleParams = RuleParams(), cou
         f"x={b1.p[0]:+.3f} m" if b1 is not None else "no bounce",
     )
     net_hits = [c for c in after if c.kind in ("net", "post")]
-    results["net"] = (not net_hits, f"{net_hits[0].kind} at t={net_hits[0].t:.3f} s" if net_hits else "clear")
+    results["net"] = (
+        not net_hits,
+        f"{getattr(net_hits[0], 'part', net_hits[0].kind)} at t={net_hits[0].t:.3f} s" if net_hits else "clear",
+    )
     b2 = bounces[1] if len(bounces) > 1 else None
     results["second_bounce_side"] = (
         b2 is not None and b2.p[0] > 0.0,

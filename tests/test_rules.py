@@ -17,6 +17,7 @@ class C:
     t: float
     p: npt.NDArray[np.float64]
     v_before: npt.NDArray[np.float64] = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
+    part: str = "top"
 
 
 def path(points: list[tuple[float, float, float, float]]) -> tuple[np.ndarray, np.ndarray]:
@@ -89,6 +90,8 @@ def test_each_check_fires() -> None:
     _fails(with_contacts(o, list(o.contacts), t=t, p=p), "above_surface")
     _fails(with_contacts(o, [r, C("racket", 0.62, r.p), b1, b2]), "multiple_racket_contacts")
     _fails(with_contacts(o, [r, b1]), "two_bounces")
+    # a hit on the vertical side of the table top is not a bounce on the playing surface
+    _fails(with_contacts(o, [r, b1, C("table", 1.2, np.array([1.38, 0.3, -0.01]), part="side")]), "two_bounces")
     _fails(with_contacts(o, [r, C("table", 0.8, np.array([0.5, 0, 0.02])), b2]), "first_bounce_side")
     _fails(with_contacts(o, [r, b1, C("net", 1.0, np.array([0, 0.2, 0.1])), b2]), "net")
     _fails(with_contacts(o, [r, b1, C("table", 1.2, np.array([-0.2, 0.3, 0.02]))]), "second_bounce_side")
