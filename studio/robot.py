@@ -186,16 +186,7 @@ class JointDynamics:
         """
         dt = _check_dt(dt)
         Ac, Bc = self.continuous()
-        A = np.empty_like(Ac)
-        B = np.empty_like(Bc)
-        for i in range(self.n):
-            M = np.zeros((3, 3))
-            M[:2, :2] = Ac[i]
-            M[:2, 2] = Bc[i]
-            E = scipy.linalg.expm(M * dt)
-            A[i] = E[:2, :2]
-            B[i] = E[:2, 2]
-        return A, B
+        return _expm_blocks(Ac, Bc, dt)
 
     def jerk_chain_continuous(self) -> tuple[FloatArray, FloatArray]:
         """Continuous matrices of the chain Z = [u, u', u'', q, q'] driven by jerk j = u'''.
@@ -227,16 +218,7 @@ class JointDynamics:
         """
         dt = _check_dt(dt)
         Ac, Bc = self.jerk_chain_continuous()
-        A = np.empty_like(Ac)
-        B = np.empty_like(Bc)
-        for i in range(self.n):
-            M = np.zeros((6, 6))
-            M[:5, :5] = Ac[i]
-            M[:5, 5] = Bc[i]
-            E = scipy.linalg.expm(M * dt)
-            A[i] = E[:5, :5]
-            B[i] = E[:5, 5]
-        return A, B
+        return _expm_blocks(Ac, Bc, dt)
 
     def simulate(self, u: npt.ArrayLike, dt: float, X0: npt.ArrayLike) -> FloatArray:
         """Response to commands held constant over each step (zero-order hold).
@@ -266,11 +248,46 @@ class JointDynamics:
         X = np.empty((N, self.n, 2))
         if N == 0:
             return X
-        x = X0a.copy()
+        a00, a01, a10, a11 = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
+        b0, b1 = B[:, 0], B[:, 1]
+        q, qd = X0a[:, 0].copy(), X0a[:, 1].copy()
         for k in range(N):
-            X[k] = x
-            x = np.einsum("nij,nj->ni", A, x) + B * U[k][:, None]
+            X[k, :, 0] = q
+            X[k, :, 1] = qd
+            q, qd = a00 * q + a01 * qd + b0 * U[k], a10 * q + a11 * qd + b1 * U[k]
         return X
+
+
+_EXPM_CACHE: dict[tuple[bytes, bytes, float], tuple[FloatArray, FloatArray]] = {}
+
+
+def _expm_blocks(Ac: FloatArray, Bc: FloatArray, dt: float) -> tuple[FloatArray, FloatArray]:
+    """Exact ZOH discretization of n independent blocks x' = Ac[i] x + Bc[i] u over dt.
+
+    Cached by (Ac, Bc, dt): the planner, tosses and rollouts discretize the same model
+    with the same steps thousands of times, and ``expm`` is slow under BLAS threading.
+    Returns read-only arrays A (n, m, m), B (n, m).
+    """
+    key = (Ac.tobytes() + str(Ac.shape).encode(), Bc.tobytes(), float(dt))
+    hit = _EXPM_CACHE.get(key)
+    if hit is not None:
+        return hit
+    n, m = Bc.shape
+    A = np.empty_like(Ac)
+    B = np.empty_like(Bc)
+    M = np.zeros((m + 1, m + 1))
+    for i in range(n):
+        M[:m, :m] = Ac[i]
+        M[:m, m] = Bc[i]
+        E = scipy.linalg.expm(M * dt)
+        A[i] = E[:m, :m]
+        B[i] = E[:m, m]
+    A.flags.writeable = False
+    B.flags.writeable = False
+    if len(_EXPM_CACHE) > 256:
+        _EXPM_CACHE.clear()
+    _EXPM_CACHE[key] = (A, B)
+    return A, B
 
 
 # --------------------------------------------------------------------------------------

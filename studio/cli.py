@@ -1,0 +1,73 @@
+"""Command line of the serve studio: ``serve-studio <command> ...``.
+
+Commands import their modules lazily so that ``serve-studio --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+
+Handler = Callable[[argparse.Namespace], int]
+
+
+def _cmd_app(args: argparse.Namespace) -> int:
+    from studio.app import run_app
+
+    run_app(host=args.host, port=args.port, serves_dir=args.serves, library_dir=args.library)
+    return 0
+
+
+def _cmd_toss(args: argparse.Namespace) -> int:
+    from studio.toss import toss_report
+
+    print(toss_report(side=args.side, csv_path=args.csv))
+    return 0
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from studio.ball_calibration import main as calibration_main
+
+    return calibration_main([] if args.folds is None else ["--folds", str(args.folds)])
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
+    parser = argparse.ArgumentParser(prog="serve-studio", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    handlers: dict[str, Handler] = {}
+
+    p = sub.add_parser("app", help="start the serve design studio (viser, in the browser)")
+    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default: localhost only)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument("--serves", default=None, help="folder of hand-designed serve JSON files (default: examples/serves)")
+    p.add_argument("--library", default=None, help="serve library folder to export to (default: ./serve-library)")
+    handlers["app"] = _cmd_app
+
+    p = sub.add_parser("toss", help="analyse toss recordings: lift time, rise, spread")
+    p.add_argument("--side", choices=("right", "left"), default="right")
+    p.add_argument("--csv", default=None, help="recordings CSV (toss_id,t,x,y,z); default: the shipped recordings")
+    handlers["toss"] = _cmd_toss
+
+    p = sub.add_parser("calibrate", help="fit the racket impact model on the bounce data and print cross-validated errors")
+    p.add_argument("--folds", type=int, default=None)
+    handlers["calibrate"] = _cmd_calibrate
+    return parser, handlers
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser, handlers = build_parser()
+    args = parser.parse_args(argv)
+    from studio.errors import StudioError
+
+    try:
+        return handlers[args.command](args)
+    except StudioError as err:
+        print(f"serve-studio {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

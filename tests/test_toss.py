@@ -1,0 +1,386 @@
+"""Tests of studio.toss: release model, toss primitive, synthetic recordings, toss model, CSV."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from studio import ball
+from studio import constants as C
+from studio import toss as T
+from studio.errors import DataFileError, InvalidInputError
+from studio.robot import Robot, load_robot
+
+END_LINE_X = -C.TABLE_LENGTH / 2
+
+
+@pytest.fixture(scope="module")
+def robot() -> Robot:
+    return load_robot()
+
+
+@pytest.fixture(scope="module")
+def right(robot: Robot) -> T.TossPrimitive:
+    return T.make_toss(robot, "right")
+
+
+@pytest.fixture(scope="module")
+def left(robot: Robot) -> T.TossPrimitive:
+    return T.make_toss(robot, "left")
+
+
+@pytest.fixture(scope="module")
+def nominal(right: T.TossPrimitive) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return T.nominal_ball_path(right, end_height=T.TossNoise().end_height)
+
+
+# ------------------------------------------------------------------------------------
+# Release model
+# ------------------------------------------------------------------------------------
+
+
+def test_find_release_matches_analytic_crossing() -> None:
+    # Cup z = -A cos(w t): contact force (a + g) crosses 0 at cos(w t) = -g / (A w^2).
+    A, w = 0.1, 20.0
+    t = np.arange(0.0, 0.3, 1e-3)
+    p = np.stack([np.zeros_like(t), np.zeros_like(t), -A * np.cos(w * t)], axis=1)
+    n = np.tile([0.0, 0.0, 1.0], (t.size, 1))
+    rel = T.find_release(t, p, n)
+    assert rel is not None
+    t_true = math.acos(-C.GRAVITY / (A * w * w)) / w
+    assert rel.time == pytest.approx(t_true, abs=2e-6)
+    assert rel.index == int(t_true / 1e-3)
+    assert rel.velocity[2] == pytest.approx(A * w * math.sin(w * t_true), rel=1e-3)
+    assert rel.position[2] == pytest.approx(-A * math.cos(w * t_true), abs=1e-5)
+    assert rel.spin == pytest.approx(0.0, abs=1e-12)
+    # With the exact acceleration given, the crossing is the same.
+    a = np.stack([np.zeros_like(t), np.zeros_like(t), A * w * w * np.cos(w * t)], axis=1)
+    rel2 = T.find_release(t, p, n, cup_a=a)
+    assert rel2 is not None and rel2.time == pytest.approx(t_true, abs=1e-6)
+
+
+def test_find_release_tilted_normal_and_no_release() -> None:
+    t = np.arange(0.0, 0.5, 1e-3)
+    # Cup at rest, normal tilted 30 deg: gravity still pushes the ball into the cup.
+    n = np.tile([math.sin(0.5), 0.0, math.cos(0.5)], (t.size, 1))
+    assert T.find_release(t, np.zeros((t.size, 3)), n) is None
+    # A sideways acceleration of 20 m/s^2 against a 30 deg tilted normal lifts the ball:
+    # (a + g) . n = -20 sin 30 + 9.81 cos 30 = -1.5 < 0 from the start.
+    p = np.stack([-10.0 * t**2, np.zeros_like(t), np.zeros_like(t)], axis=1)
+    rel = T.find_release(t, p, n)
+    assert rel is not None and rel.index == 0 and rel.time == 0.0
+    assert T.contact_margin(np.array([-20.0, 0.0, 0.0]), n[0]) == pytest.approx(-20 * math.sin(0.5) + 9.81 * math.cos(0.5))
+    with pytest.raises(InvalidInputError):
+        T.find_release(t[:2], p[:2], n[:2])
+    with pytest.raises(InvalidInputError):
+        T.find_release(t[::-1], p, n)
+    with pytest.raises(InvalidInputError):
+        T.find_release(t, p, np.zeros_like(n))
+
+
+def test_lift_profile_is_smooth_and_stops() -> None:
+    prof = T.LiftProfile.design(2.8, lift_acceleration=18.0, ramp_up=0.2, ramp_release=0.15, ramp_stop=0.22, hold_start=0.05)
+    dt = 1e-4
+    t = np.arange(0.0, prof.duration + 0.1, dt)
+    d = prof.evaluate(t)
+    # Derivatives are consistent (finite differences) and continuous up to the 4th.
+    for m in range(4):
+        fd = np.gradient(d[m], dt)
+        assert np.max(np.abs(fd - d[m + 1])[2:-2]) < 2e-3 * max(1.0, np.max(np.abs(d[m + 1])))
+        assert np.max(np.abs(np.diff(d[m + 1]))) < np.max(np.abs(d[m + 2])) * dt * 1.01 + 1e-9
+    assert d[1][-1] == 0.0 and d[2][-1] == 0.0
+    assert d[0][-1] == pytest.approx(prof.travel, abs=1e-9)
+    t_rel, v_rel = prof.release_estimate()
+    assert v_rel == pytest.approx(2.8, abs=1e-9)
+    assert prof.evaluate([t_rel])[2, 0] == pytest.approx(-C.GRAVITY, abs=1e-9)
+    assert prof.stop_deceleration > C.GRAVITY
+
+
+# ------------------------------------------------------------------------------------
+# Toss primitive
+# ------------------------------------------------------------------------------------
+
+
+def test_toss_rises_vertically_without_spin(right: T.TossPrimitive, nominal: tuple[np.ndarray, ...]) -> None:
+    rel = right.release
+    # Released near vertically (designed: exactly) and without spin (racket does not turn).
+    assert rel.horizontal_speed < 0.005
+    assert rel.spin < 1e-3
+    assert rel.velocity[2] == pytest.approx(2.679, abs=0.005)
+    # Rise above the release point in air: >= 16 cm (ITTF 2.6.2); designed 0.35 m.
+    tn, pn, _ = nominal
+    rise = float(np.max(pn[:, 2]) - rel.position[2])
+    assert rise >= C.TOSS_MIN_RISE
+    assert rise == pytest.approx(0.35, abs=2e-3)
+    # The analytic drag formula agrees with the integrated flight.
+    k = ball.DEFAULT_FLIGHT.drag_constant
+    assert T.vertical_rise(float(rel.velocity[2]), drag_k=k) == pytest.approx(rise, abs=5e-4)
+    # Cross-check of the toss flight against studio.ball.simulate (before any contact).
+    traj = ball.simulate(ball.BallState(rel.position, rel.velocity, np.zeros(3)), 0.6, t0=rel.time, dt_out=1e-3)
+    z_sim = np.interp(tn[tn > rel.time + 0.01], traj.t, traj.p[:, 2], right=np.nan)
+    ok = np.isfinite(z_sim)
+    assert np.max(np.abs(z_sim[ok] - pn[tn > rel.time + 0.01][ok, 2])) < 1e-4
+    # Ball above the playing surface and behind the end line from the start until it
+    # comes back to table level, with margin for the toss spread.
+    before_table = np.arange(tn.size) < np.argmax((pn[:, 2] < 0.0) & (tn > rel.time))
+    assert np.min(pn[before_table, 2]) > 0.0
+    assert np.max(pn[:, 0]) < END_LINE_X - C.BALL_RADIUS - 0.1
+    # Contact window: the ball stays above the table for 0.6 s after the lift at least.
+    assert tn[np.argmax((pn[:, 2] < 0.0) & (tn > rel.time))] - rel.time > 0.6
+
+
+def test_racket_flat_during_lift(right: T.TossPrimitive) -> None:
+    lift = right.t <= right.release.time
+    tilt = np.degrees(np.arccos(np.clip(right.cup_normal[lift, 2], -1.0, 1.0)))
+    assert np.max(tilt) < 0.01  # the lift keeps the racket exactly flat (< 2 deg required)
+    assert right.cup_p[0, 2] > C.BALL_RADIUS  # starts with the ball above the table level
+    # The ball rises well above its start: the cup travels about 0.36 m before the release.
+    assert 0.25 < right.release.position[2] - right.cup_p[0, 2] < 0.45
+
+
+def test_primitive_within_joint_limits_and_continuous(robot: Robot, right: T.TossPrimitive) -> None:
+    lim = robot.limits
+    u, dt = right.u, right.dt
+    assert right.t[-1] >= 1.2 and dt == 1e-3
+    assert np.all(u >= lim.lower) and np.all(u <= lim.upper)
+    assert np.all(right.q >= lim.lower) and np.all(right.q <= lim.upper)
+    # Finite differences of the 1 kHz commands.
+    v = np.diff(u, axis=0) / dt
+    a = np.diff(u, 2, axis=0) / dt**2
+    j = np.diff(u, 3, axis=0) / dt**3
+    assert np.all(np.max(np.abs(v), axis=0) <= lim.velocity)
+    assert np.all(np.max(np.abs(a), axis=0) <= lim.acceleration)
+    assert np.all(np.max(np.abs(j), axis=0) <= lim.jerk * 1.001)
+    # The exact derivatives agree with the samples and are within limits with margin.
+    assert np.max(np.abs(v - 0.5 * (right.ud[1:] + right.ud[:-1]))) < 1e-4
+    assert np.max(np.abs(right.uddd) / lim.jerk) < 0.95
+    assert T.limit_violations(right.u, right.ud, right.udd, right.uddd, lim, q=right.q) == []
+    # Continuity up to acceleration: sample-to-sample jumps bounded by the jerk limit.
+    assert np.all(np.max(np.abs(np.diff(right.udd, axis=0)), axis=0) <= lim.jerk * dt * 1.001)
+    # Starts and ends at rest; the gantry does not move during the toss.
+    for arr in (right.ud, right.udd):
+        assert np.max(np.abs(arr[0])) < 1e-9 and np.max(np.abs(arr[-1])) < 1e-9
+    assert np.ptp(u[:, :2], axis=0).max() == 0.0
+    # Hand-over state for the strike planner.
+    u0, ud0, udd0, X0 = right.command_state(0.5)
+    assert np.array_equal(u0, u[500]) and X0.shape == (8, 2) and ud0.shape == udd0.shape == (8,)
+
+
+def test_too_high_toss_is_rejected(robot: Robot) -> None:
+    with pytest.raises(InvalidInputError, match="release height|joint limits"):
+        T.make_toss(robot, "right", rise=0.6)
+    with pytest.raises(InvalidInputError, match="side"):
+        T.make_toss(robot, "middle")  # type: ignore[arg-type]
+    with pytest.raises(InvalidInputError, match="rise"):
+        T.make_toss(robot, "right", rise=0.1)
+
+
+def test_left_and_right_tosses_mirror(right: T.TossPrimitive, left: T.TossPrimitive) -> None:
+    r, l = right.release, left.release
+    assert r.position[1] == pytest.approx(-0.30, abs=1e-9)
+    assert l.position[1] == pytest.approx(0.30, abs=1e-9)
+    assert l.position[[0, 2]] == pytest.approx(r.position[[0, 2]], abs=1e-9)
+    assert l.velocity == pytest.approx(r.velocity, abs=1e-9)
+    assert l.time == pytest.approx(r.time, abs=1e-12)
+    assert np.array_equal(left.u[:, 2:], right.u[:, 2:])
+
+
+# ------------------------------------------------------------------------------------
+# Synthetic recordings and the toss model
+# ------------------------------------------------------------------------------------
+
+
+def test_model_recovers_truth_with_measurement_noise_only(
+    robot: Robot, right: T.TossPrimitive, nominal: tuple[np.ndarray, ...]
+) -> None:
+    noise = T.TossNoise(vibration=0.0, release_jitter=0.0, wind=0.0, wind_vertical=0.0)
+    recs = T.simulate_tosses(robot, right, 15, np.random.default_rng(5), noise=noise)
+    model = T.TossModel.from_recordings(right, recs)
+    assert model.t_lift == pytest.approx(right.release.time, abs=1e-3)
+    tn, pn, _ = nominal
+    sel = model.t <= tn[-1]
+    err = np.linalg.norm(model.p[sel] - np.stack([np.interp(model.t[sel], tn, pn[:, j]) for j in range(3)], axis=1), axis=1)
+    assert np.max(err) < 1.5e-3
+    # Clocks recovered; the spread is only the averaged-down tracking noise.
+    true_off = np.array([tr.clock_offset for tr in recs.truth or ()])
+    assert np.max(np.abs(model.clock_offsets - true_off)) < 1e-3
+    assert np.max(model.spread_norm[model.t > model.t_lift]) < 3e-3
+    assert model.lift_fit_rms == pytest.approx(noise.measurement, rel=0.15)
+
+
+def test_model_with_default_noise(robot: Robot, right: T.TossPrimitive) -> None:
+    noise = T.TossNoise()
+    recs = T.simulate_tosses(robot, right, 15, np.random.default_rng(11), noise=noise)
+    assert recs.truth is not None
+    # Recordings: camera rate, random phases and clocks, ball seen in the cup first.
+    for rec, tr in zip(recs.recordings, recs.truth):
+        assert np.allclose(np.diff(rec.t), 1.0 / noise.camera_rate)
+        assert rec.t[0] - tr.clock_offset < tr.release_time - 0.2
+        assert rec.p[-1, 2] >= noise.end_height - 0.05
+    # Every toss leaves near vertically (vibration and jitter included).
+    assert max(float(np.hypot(*tr.release_v[:2])) for tr in recs.truth) < 0.05
+    model = T.TossModel.from_recordings(right, recs)
+    t_true = float(np.mean([tr.release_time for tr in recs.truth]))
+    assert model.t_lift == pytest.approx(t_true, abs=3e-3)
+    # Mean path vs the mean of the true (noise-free) paths of the same tosses.
+    flight = model.t > max(tr.release_time for tr in recs.truth) + 0.02
+    tq = model.t[flight]
+    FT, FP, FV = T._free_flights(
+        np.array([tr.release_p for tr in recs.truth]),
+        np.array([tr.release_v for tr in recs.truth]),
+        np.array([tr.release_time for tr in recs.truth]),
+        float(tq[-1]) - min(tr.release_time for tr in recs.truth) + 0.01,
+        ball.DEFAULT_FLIGHT,
+        wind=np.array([tr.wind for tr in recs.truth]),
+        h=1e-3,
+    )
+    true_paths = [T._hermite(FT[k], FP[k], FV[k], tq) for k in range(len(recs))]
+    err = np.linalg.norm(model.p[flight] - np.mean(true_paths, axis=0), axis=1)
+    assert np.max(err) < 3e-3
+    # Spread 0.7 s after the lift: about +/-1 cm (paper, 15 tosses).
+    sp = model.spread_at(model.t_lift + 0.7)
+    assert np.all(sp > 2e-3) and np.all(sp < 2e-2)
+    assert 0.005 < float(np.linalg.norm(sp)) < 0.025
+    # The spread grows with time after the release.
+    assert model.spread_norm[-1] > 3 * model.spread_norm[np.searchsorted(model.t, model.t_lift + 0.05)]
+
+
+def test_model_states_and_sampling(robot: Robot, right: T.TossPrimitive) -> None:
+    recs = T.simulate_tosses(robot, right, 12, np.random.default_rng(3))
+    model = T.TossModel.from_recordings(right, recs)
+    tq = model.t_lift + 0.5
+    mean = model.mean_state(tq)
+    assert np.array_equal(mean.w, np.zeros(3))
+    states = model.ball_states_at(tq)
+    assert len(states) == 12 == model.n_tosses
+    assert np.allclose(np.mean([s.p for s in states], axis=0), mean.p, atol=1e-6)
+    rng = np.random.default_rng(0)
+    draws = np.array([model.sample(tq, rng).p for _ in range(400)])
+    assert np.allclose(draws.mean(axis=0), mean.p, atol=2e-3)
+    assert np.allclose(draws.std(axis=0), model.spread_at(tq), rtol=0.25, atol=5e-4)
+    rec = model.sample(tq, rng, method="recorded")
+    assert any(np.array_equal(rec.p, s.p) for s in states)
+    # Falling after the apex: velocity down, and the mean velocity is the path's derivative.
+    assert mean.v[2] < 0.0
+    h = 1e-3
+    fd = (model.mean_state(tq + h).p - model.mean_state(tq - h).p) / (2 * h)
+    assert np.allclose(fd, mean.v, atol=1e-3)
+    with pytest.raises(InvalidInputError, match="outside"):
+        model.mean_state(5.0)
+    with pytest.raises(InvalidInputError, match="method"):
+        model.sample(tq, rng, method="other")  # type: ignore[arg-type]
+
+
+def test_unalignable_recording_is_rejected(robot: Robot, right: T.TossPrimitive) -> None:
+    recs = T.simulate_tosses(robot, right, 3, np.random.default_rng(1))
+    cut = recs.recordings[0]
+    late = cut.t > cut.t[0] + 0.4  # drop the in-cup part of the recording
+    bad = T.TossRecordings((T.TossRecording(cut.toss_id, cut.t[late], cut.p[late]), *recs.recordings[1:]))
+    with pytest.raises(InvalidInputError, match="in the cup"):
+        T.TossModel.from_recordings(right, bad)
+
+
+# ------------------------------------------------------------------------------------
+# CSV format
+# ------------------------------------------------------------------------------------
+
+
+def test_csv_round_trip(robot: Robot, right: T.TossPrimitive, tmp_path: Path) -> None:
+    recs = T.simulate_tosses(robot, right, 3, np.random.default_rng(2))
+    path = tmp_path / "tosses.csv"
+    T.save_recordings_csv(path, recs, comment="test data\nsecond line")
+    back = T.load_recordings_csv(path)
+    assert [r.toss_id for r in back.recordings] == [r.toss_id for r in recs.recordings]
+    for a, b in zip(recs.recordings, back.recordings):
+        assert np.allclose(a.t, b.t, atol=5e-7, rtol=0) and np.allclose(a.p, b.p, atol=5e-7, rtol=0)
+    assert back.truth is None
+    T.save_recordings_csv(path, recs, decimals=4)
+    back4 = T.load_recordings_csv(path)
+    assert np.allclose(back4.recordings[1].p, recs.recordings[1].p, atol=5e-5, rtol=0)
+
+
+GOOD_HEADER = "toss_id,t,x,y,z"
+
+
+def _rows(n: int = 25, tid: str = "a", t0: float = 0.0) -> list[str]:
+    return [f"{tid},{t0 + 0.005 * k:.4f},-1.6,0.3,{0.1 + 0.01 * k:.4f}" for k in range(n)]
+
+
+@pytest.mark.parametrize(
+    ("lines", "match"),
+    [
+        ([GOOD_HEADER, *_rows()[:5], "a,0.1000,-1.6,abc,0.2", *_rows(30)[6:]], r"line 7, column y: 'abc' is not a number"),
+        ([GOOD_HEADER, *_rows()[:3], "a,0.0150,-1.6,0.3,nan", *_rows()[4:]], r"line 5, column z: 'nan' is not finite"),
+        ([GOOD_HEADER, *_rows()[:4], "a,0.0100,-1.6,0.3,0.2", *_rows()[5:]], r"line 6, column t: .*strictly increase"),
+        ([GOOD_HEADER, *_rows(10)], r"toss 'a' \(last row line 11\): 10 samples"),
+        (["toss_id,t,x,z", "a,0.0,-1.6,0.1"], r"line 1: header .* lacks column\(s\) y"),
+        (["# only a comment", GOOD_HEADER + ",t", *_rows()], r"line 2: duplicate column\(s\) t"),
+        ([GOOD_HEADER, *_rows()[:2], "a,0.0100,-1.6,0.3", *_rows()[3:]], r"line 4: 4 fields, the header has 5"),
+        (["# nothing"], r"no header line"),
+        ([GOOD_HEADER], r"no data rows"),
+    ],
+)
+def test_bad_csv_rejected_with_file_and_line(tmp_path: Path, lines: list[str], match: str) -> None:
+    path = tmp_path / "bad_tosses.csv"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    with pytest.raises(DataFileError, match=match) as info:
+        T.load_recordings_csv(path)
+    assert "bad_tosses.csv" in str(info.value)
+
+
+def test_csv_extra_columns_comments_and_interleaved_tosses(tmp_path: Path) -> None:
+    a, b = _rows(25, "a"), _rows(25, "b", t0=100.0)
+    lines = ["# tracker export", "conf,z,y,x,t,toss_id", ""]
+    for ra, rb in zip(a, b):
+        for row in (ra, rb):
+            tid, t, x, y, z = row.split(",")
+            lines.append(",".join(["0.9", z, y, x, t, tid]))
+    path = tmp_path / "ok.csv"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    recs = T.load_recordings_csv(path)
+    assert [r.toss_id for r in recs.recordings] == ["a", "b"]
+    assert recs.recordings[1].t[0] == pytest.approx(100.0)
+    assert recs.recordings[0].p[3] == pytest.approx([-1.6, 0.3, 0.13])
+
+
+# ------------------------------------------------------------------------------------
+# Shipped defaults
+# ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("side", T.TOSS_SIDES)
+def test_default_models_load(side: T.TossSide) -> None:
+    path = T.default_recordings_path(side)
+    assert path.is_file() and path.stat().st_size < 300_000
+    model = T.load_default_toss_model(side)
+    assert model is T.load_default_toss_model(side)  # cached
+    assert model.side == side and model.n_tosses == T.DEFAULT_N_TOSSES
+    assert model.t_lift == pytest.approx(model.primitive.release.time, abs=3e-3)
+    y_sign = -1.0 if side == "right" else 1.0
+    assert model.mean_state(model.t_lift + 0.3).p[1] == pytest.approx(0.30 * y_sign, abs=0.02)
+    apex = float(np.max(model.p[:, 2]))
+    assert apex - model.primitive.release.position[2] == pytest.approx(0.35, abs=0.01)
+    assert model.t[-1] >= model.t_lift + 0.7
+    assert 0.005 < float(np.linalg.norm(model.spread_at(model.t_lift + 0.7))) < 0.025
+    report = T.toss_report(side)
+    assert f"toss_{side}: 20 tosses" in report and "t_lift 0.35" in report and "0.7 s after the lift" in report
+
+
+def test_generator_is_deterministic(tmp_path: Path) -> None:
+    paths = T.generate_default_recordings(tmp_path, n=2, seed=7)
+    first = [p.read_bytes() for p in paths]
+    paths = T.generate_default_recordings(tmp_path, n=2, seed=7)
+    assert [p.read_bytes() for p in paths] == first
+    assert [p.name for p in paths] == ["right.csv", "left.csv"]
+
+
+def test_noise_validation() -> None:
+    with pytest.raises(InvalidInputError, match="vibration"):
+        T.TossNoise(vibration=-1.0)
+    with pytest.raises(InvalidInputError, match="camera_rate"):
+        T.TossNoise(camera_rate=0.0)
+    with pytest.raises(InvalidInputError, match="clock_offset"):
+        T.TossNoise(clock_offset=(5.0, 1.0))
