@@ -1,0 +1,358 @@
+"""The serve design studio: a viser app over the core modules.
+
+Thin by design: the GUI callbacks only record the latest control values and hand them
+to one :class:`~studio.worker.LatestWorker`, which evaluates the serve with
+:func:`studio.evaluate.evaluate_serve` (plan, ball prediction, optional MuJoCo rollout,
+ITTF checks, reward) and publishes the result; the scene is built by the pure
+:func:`studio.evaluate.scene_frame` and shown by :class:`~studio.scene.StudioScene`.
+
+Run with ``serve-studio app`` (``./dev studio``). Listens on 127.0.0.1 by default.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from studio.errors import InvalidInputError, StudioError
+from studio.evaluate import Evaluation, EvaluationContext, evaluate_serve, report_markdown, scene_frame
+from studio.reward import TASKS
+from studio.scene import StudioScene
+from studio.serve import GenomeBounds, HandServe, ServeParams, load_serve, save_serve, serve_from_json
+from studio.worker import LatestWorker, WorkResult
+
+EXAMPLES_DIR = Path(__file__).resolve().parent.parent / "examples" / "serves"
+
+
+@dataclass(frozen=True, slots=True)
+class Controls:
+    """A snapshot of the studio's controls: what the worker evaluates."""
+
+    serve: HandServe
+    """Serve being edited (side and parameters)."""
+    task: str
+    """Reward task preset."""
+    toss_sample: int | None
+    """Recorded toss index, or None for the mean toss path."""
+    mujoco: bool
+    """Also roll the serve out in MuJoCo."""
+
+
+def safe_name(name: str) -> str:
+    """A file-name-safe version of a serve name (letters, digits, '-', '_')."""
+    cleaned = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name.strip())[:64].strip("_")
+    if not cleaned:
+        raise InvalidInputError("serve name must contain at least one letter or digit")
+    return cleaned
+
+
+def list_serves(folder: Path) -> dict[str, Path]:
+    """Serve JSON files in ``folder`` by file stem (sorted)."""
+    if not folder.is_dir():
+        return {}
+    return {p.stem: p for p in sorted(folder.glob("*.json"))}
+
+
+def inside(folder: Path, path: Path) -> bool:
+    """Whether ``path`` resolves to a location inside ``folder``."""
+    try:
+        path.resolve().relative_to(folder.resolve())
+        return True
+    except ValueError:
+        return False
+
+
+class StudioApp:
+    """The studio's GUI, wiring controls to the worker and the scene.
+
+    Args:
+        server: a running viser server.
+        context: robot, tosses, planner and models shared by all evaluations.
+        serves_dir: folder of hand-designed serves (read, and written by "save as seed").
+        library_dir: serve library folder for "export".
+    """
+
+    def __init__(self, server: Any, *, context: EvaluationContext, serves_dir: Path, library_dir: Path) -> None:
+        self.server = server
+        self.context = context
+        self.serves_dir = serves_dir
+        self.library_dir = library_dir
+        self.scene = StudioScene(server)
+        self.last: Evaluation | None = None
+        self._lock = threading.Lock()
+        self._suspend = False
+        self._playing = False
+        self._bounds = GenomeBounds()
+        self.worker: LatestWorker[Controls, Evaluation] = LatestWorker(self._compute, self._publish, name="studio-evaluator")
+        self._build_gui()
+        serves = list_serves(serves_dir) or list_serves(EXAMPLES_DIR)
+        first = next(iter(serves.values()), None)
+        initial = load_serve(first) if first is not None else self._fallback_serve()
+        self.load(initial)
+        server.initial_camera.position = (-3.9, -2.4, 1.3)
+        server.initial_camera.look_at = (-0.8, 0.0, 0.0)
+        threading.Thread(target=self._playback_loop, name="studio-playback", daemon=True).start()
+
+    # -- GUI construction -----------------------------------------------------------
+
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        gui.configure_theme(control_width="large")
+        tabs = gui.add_tab_group()
+        with tabs.add_tab("Serve"):
+            self.serve_file = gui.add_dropdown("Serve file", options=["(current)"], initial_value="(current)")
+            self.name = gui.add_text("Name", initial_value="my serve")
+            self.side = gui.add_dropdown("Toss side", options=["right", "left"], initial_value="right")
+            self.toss = gui.add_dropdown("Toss", options=["mean path"], initial_value="mean path")
+            self.task = gui.add_dropdown("Task", options=list(TASKS), initial_value="topspin_velocity")
+            b = self._bounds
+            with gui.add_folder("Contact"):
+                self.tau = gui.add_slider("tau [s]", min=b.tau[0], max=b.tau[1], step=0.005, initial_value=0.8)
+                self.t_return = gui.add_slider("return [s]", min=b.t_return[0], max=b.t_return[1], step=0.01, initial_value=0.7)
+            with gui.add_folder("Racket velocity [m/s]"):
+                self.vx = gui.add_slider("v_x", min=-b.velocity[0], max=b.velocity[0], step=0.05, initial_value=4.0)
+                self.vy = gui.add_slider("v_y", min=-b.velocity[1], max=b.velocity[1], step=0.05, initial_value=0.0)
+                self.vz = gui.add_slider("v_z", min=-b.velocity[2], max=b.velocity[2], step=0.05, initial_value=0.0)
+            with gui.add_folder("Racket normal [deg]"):
+                self.yaw = gui.add_slider("yaw", min=math.degrees(b.yaw[0]), max=math.degrees(b.yaw[1]), step=0.5, initial_value=90.0)
+                self.roll = gui.add_slider("roll", min=-180.0, max=180.0, step=0.5, initial_value=0.0)
+            with gui.add_folder("Contact offset [m]", expand_by_default=False):
+                self.dpx = gui.add_slider("dp_x", min=-b.offset, max=b.offset, step=0.002, initial_value=0.0)
+                self.dpy = gui.add_slider("dp_y", min=-b.offset, max=b.offset, step=0.002, initial_value=0.0)
+                self.dpz = gui.add_slider("dp_z", min=-b.offset, max=b.offset, step=0.002, initial_value=0.0)
+            self.mujoco = gui.add_checkbox("MuJoCo rollout", initial_value=False)
+            with gui.add_folder("Files"):
+                self.save_button = gui.add_button("Save as seed")
+                self.download_button = gui.add_button("Download JSON")
+                self.upload_button = gui.add_upload_button("Upload JSON", mime_type="application/json")
+        with tabs.add_tab("Checks"):
+            self.status_md = gui.add_markdown("_evaluating..._")
+            self.checks_md = gui.add_markdown("")
+        with tabs.add_tab("Metrics"):
+            self.metrics_md = gui.add_markdown("")
+        with gui.add_folder("Playback"):
+            self.play = gui.add_button("Play")
+            self.time = gui.add_slider("time [s]", min=0.0, max=2.5, step=0.005, initial_value=0.0)
+            self.speed = gui.add_dropdown("speed", options=["0.1x", "0.25x", "0.5x", "1x"], initial_value="0.25x")
+        self.message_md = gui.add_markdown("")
+
+        controls = (self.side, self.toss, self.task, self.tau, self.t_return, self.vx, self.vy, self.vz, self.yaw, self.roll, self.dpx, self.dpy, self.dpz, self.mujoco)
+        for handle in controls:
+            handle.on_update(lambda _event: self._changed())
+        self.side.on_update(lambda _event: self._refresh_toss_options())
+        self.serve_file.on_update(lambda _event: self._load_selected())
+        self.save_button.on_click(lambda event: self._save_seed(event))
+        self.download_button.on_click(lambda event: self._download(event))
+        self.upload_button.on_upload(lambda event: self._upload(event))
+        self.play.on_click(lambda _event: self._toggle_play())
+        self.time.on_update(lambda _event: None if self._playing else self.scene.show_time(self.time.value))
+        self._refresh_serve_files()
+
+    # -- controls <-> serve -----------------------------------------------------------
+
+    def _fallback_serve(self) -> HandServe:
+        return HandServe(name="my serve", side="right", params=ServeParams(tau=0.8, velocity=(4.0, 0.0, 0.0), yaw=math.pi / 2, roll=0.0))
+
+    def controls(self) -> Controls:
+        """Read the controls into a validated snapshot (InvalidInputError names the control)."""
+        values = {
+            "tau": self.tau.value,
+            "return": self.t_return.value,
+            "v_x": self.vx.value,
+            "v_y": self.vy.value,
+            "v_z": self.vz.value,
+            "yaw": self.yaw.value,
+            "roll": self.roll.value,
+            "dp_x": self.dpx.value,
+            "dp_y": self.dpy.value,
+            "dp_z": self.dpz.value,
+        }
+        for key, value in values.items():
+            if not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise InvalidInputError(f"control {key!r} must be a finite number, got {value!r}")
+        params = ServeParams(
+            tau=float(values["tau"]),
+            velocity=(float(values["v_x"]), float(values["v_y"]), float(values["v_z"])),
+            yaw=math.radians(values["yaw"]),
+            roll=math.radians(values["roll"]),
+            t_return=float(values["return"]),
+            offset=(float(values["dp_x"]), float(values["dp_y"]), float(values["dp_z"])),
+        )
+        serve = HandServe(name=self.name.value.strip() or "my serve", side=self.side.value, params=params, task=self.task.value)
+        toss = None if self.toss.value == "mean path" else int(self.toss.value.split()[-1]) - 1
+        return Controls(serve=serve, task=self.task.value, toss_sample=toss, mujoco=bool(self.mujoco.value))
+
+    def load(self, serve: HandServe) -> None:
+        """Put a serve into the controls and evaluate it."""
+        p = serve.params
+        self._suspend = True
+        try:
+            self.name.value = serve.name
+            self.side.value = serve.side
+            if serve.task in TASKS:
+                self.task.value = serve.task
+            self.tau.value = float(np.clip(p.tau, self.tau.min, self.tau.max))
+            self.t_return.value = float(np.clip(p.t_return, self.t_return.min, self.t_return.max))
+            for handle, value in ((self.vx, p.velocity[0]), (self.vy, p.velocity[1]), (self.vz, p.velocity[2]), (self.dpx, p.offset[0]), (self.dpy, p.offset[1]), (self.dpz, p.offset[2])):
+                handle.value = float(np.clip(value, handle.min, handle.max))
+            self.yaw.value = float(np.clip(math.degrees(p.yaw), self.yaw.min, self.yaw.max))
+            self.roll.value = float(np.clip(math.degrees(p.roll), self.roll.min, self.roll.max))
+            self._refresh_toss_options()
+        finally:
+            self._suspend = False
+        self._changed()
+
+    def _refresh_toss_options(self) -> None:
+        n = self.context.toss_model(self.side.value).n_tosses
+        options = ["mean path", *(f"recorded {i + 1}" for i in range(n))]
+        current = self.toss.value if self.toss.value in options else "mean path"
+        self.toss.options = options
+        self.toss.value = current
+
+    def _refresh_serve_files(self) -> None:
+        names = ["(current)", *list_serves(self.serves_dir), *(f"example/{k}" for k in list_serves(EXAMPLES_DIR) if self.serves_dir.resolve() != EXAMPLES_DIR.resolve())]
+        self._suspend = True
+        try:
+            self.serve_file.options = names
+            self.serve_file.value = "(current)"
+        finally:
+            self._suspend = False
+
+    # -- events -----------------------------------------------------------------------
+
+    def _changed(self) -> None:
+        if self._suspend:
+            return
+        try:
+            self.worker.submit(self.controls())
+            self.status_md.content = "_evaluating..._"
+        except StudioError as err:
+            self._message(f"**Input rejected:** {err}")
+
+    def _load_selected(self) -> None:
+        if self._suspend or self.serve_file.value == "(current)":
+            return
+        key = self.serve_file.value
+        folder, stem = (EXAMPLES_DIR, key.split("/", 1)[1]) if key.startswith("example/") else (self.serves_dir, key)
+        try:
+            self.load(load_serve(folder / f"{stem}.json"))
+            self._message(f"Loaded `{stem}`.")
+        except StudioError as err:
+            self._message(f"**Cannot load {stem}:** {err}")
+
+    def _save_seed(self, _event: Any) -> None:
+        try:
+            serve = self.controls().serve
+            self.serves_dir.mkdir(parents=True, exist_ok=True)
+            path = self.serves_dir / f"{safe_name(serve.name)}.json"
+            if not inside(self.serves_dir, path):
+                raise InvalidInputError(f"serve name {serve.name!r} leaves the serves folder")
+            save_serve(path, serve)
+            self._refresh_serve_files()
+            self._message(f"Saved seed `{path.name}` in `{self.serves_dir}`.")
+        except (StudioError, OSError) as err:
+            self._message(f"**Save failed:** {err}")
+
+    def _download(self, event: Any) -> None:
+        try:
+            serve = self.controls().serve
+            data = (json.dumps(serve.to_json(), indent=2) + "\n").encode()
+            if event.client is not None:
+                event.client.send_file_download(f"{safe_name(serve.name)}.json", data)
+        except StudioError as err:
+            self._message(f"**Download failed:** {err}")
+
+    def _upload(self, event: Any) -> None:
+        file = self.upload_button.value
+        try:
+            data = json.loads(file.content.decode("utf-8"))
+            self.load(serve_from_json(data, source=file.name))
+            self._message(f"Loaded upload `{file.name}`.")
+        except (UnicodeDecodeError, json.JSONDecodeError) as err:
+            self._message(f"**Upload rejected:** {file.name}: not valid JSON ({err})")
+        except StudioError as err:
+            self._message(f"**Upload rejected:** {err}")
+
+    def _message(self, text: str) -> None:
+        self.message_md.content = text
+
+    # -- worker -----------------------------------------------------------------------
+
+    def _compute(self, controls: Controls) -> Evaluation:
+        return evaluate_serve(
+            controls.serve,
+            self.context,
+            task=controls.task,
+            toss_sample=controls.toss_sample,
+            mujoco=controls.mujoco,
+        )
+
+    def _publish(self, result: WorkResult[Controls, Evaluation]) -> None:
+        if result.error is not None or result.value is None:
+            self.status_md.content = f"**Evaluation failed** ({type(result.error).__name__}): {result.error}"
+            return
+        evaluation = result.value
+        frame = scene_frame(evaluation, self.context)
+        with self._lock:
+            self.last = evaluation
+            self.scene.show(frame)
+            status, checks, metrics = report_markdown(evaluation)
+            self.status_md.content = status + f"\n\n_evaluated in {1000 * result.seconds:.0f} ms_"
+            self.checks_md.content = checks
+            self.metrics_md.content = metrics
+            pb = frame.playback
+            if pb is not None and len(pb.t):
+                self.time.max = float(pb.t[-1])
+                self.time.min = float(pb.t[0])
+                self.time.value = float(np.clip(self.time.value, pb.t[0], pb.t[-1]))
+                self.scene.show_time(self.time.value)
+
+    # -- playback ---------------------------------------------------------------------
+
+    def _toggle_play(self) -> None:
+        self._playing = not self._playing
+        self.play.label = "Pause" if self._playing else "Play"
+
+    def _playback_loop(self) -> None:
+        last = time.perf_counter()
+        while True:
+            time.sleep(1 / 30)
+            now = time.perf_counter()
+            dt, last = now - last, now
+            if not self._playing:
+                continue
+            speed = float(self.speed.value.rstrip("x"))
+            t_new = self.time.value + dt * speed
+            if t_new > self.time.max:
+                t_new = self.time.min
+            self.time.value = t_new
+            with self._lock:
+                self.scene.show_time(t_new)
+
+
+def run_app(*, host: str = "127.0.0.1", port: int = 8080, serves_dir: str | None = None, library_dir: str | None = None) -> None:
+    """Start the studio and serve until interrupted."""
+    import viser
+
+    print("serve-studio: loading robot, tosses and planner ...", flush=True)
+    context = EvaluationContext.default()
+    serves = Path(serves_dir) if serves_dir else Path.cwd() / "serves"
+    library = Path(library_dir) if library_dir else Path.cwd() / "serve-library"
+    server = viser.ViserServer(host=host, port=port)
+    StudioApp(server, context=context, serves_dir=serves, library_dir=library)
+    print(f"serve-studio: open http://{host}:{port} (Ctrl+C to stop)", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+

@@ -1,0 +1,516 @@
+"""Serve evaluation: serve parameters -> plan -> ball -> ITTF checks -> reward.
+
+The chain of the paper's section "Optimizing serve parameters":
+
+1. decode the strike target: p_tau = p_bar(tau) + delta_p on the toss's mean path,
+   n_tau from (yaw, roll), v_tau;
+2. plan the strike from the toss trajectory's state at the switch time (shortly after
+   the ball leaves the cup) with :class:`studio.planner.StrikePlanner`; a failed or
+   invalid plan gets the fixed penalty P_MPC = -10 and no rollout;
+3. check the whole motion for collisions (coal); a colliding plan is unsafe and is
+   treated like a planner failure (-10);
+4. predict the ball: from the (mean or sampled) toss state just after lift, with the
+   racket moving as the predicted joint trajectory says (analytic predictor of
+   :mod:`studio.ball`, optionally the MuJoCo rollout of :mod:`studio.rollout`);
+5. the legality chain (:mod:`studio.rules`) and the reward (:mod:`studio.reward`).
+
+Times are on the toss command clock (t = 0 at the start of the toss primitive).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from studio import constants as C
+from studio.ball import (
+    DEFAULT_FLIGHT,
+    BallState,
+    FlightModel,
+    RacketModel,
+    SampledRacketMotion,
+    Trajectory,
+    simulate,
+    spin_components,
+)
+from studio.court import DEFAULT_COURT
+from studio.errors import InvalidInputError
+from studio.reward import PLANNER_FAILURE_PENALTY, RewardTerms, RewardWeights, reward, task_weights
+from studio.robot import Robot, load_robot
+from studio.rules import LegalityReport, RuleParams, ServeOutcome, check_serve, net_crossing
+from studio.scene import COLORS, Marker, PathSegment, Playback, RacketTarget, SceneFrame
+from studio.serve import HandServe, TossSide
+from studio.toss import TossModel, load_default_toss_model
+
+Status = Literal["legal", "illegal", "planner_failed", "collision"]
+
+SWITCH_DELAY = 0.02
+"""Time after the ball's lift at which the strike planner takes over from the toss [s]."""
+
+FLIGHT_AFTER_CONTACT = 1.6
+"""How long the ball is followed after the contact time [s] (ends earlier at the floor)."""
+
+
+@dataclass
+class EvaluationContext:
+    """What every evaluation shares: robot, tosses, planner, collision checker, models.
+
+    Built once (loading the planner and the collision model takes about a second) and
+    reused; not thread-safe (one worker per context).
+    """
+
+    robot: Robot
+    """The serve robot."""
+    flight: FlightModel = DEFAULT_FLIGHT
+    """Ball flight model."""
+    racket_model: RacketModel = field(default_factory=RacketModel.default)
+    """Calibrated racket impact model."""
+    rules: RuleParams = field(default_factory=RuleParams)
+    """Legality thresholds."""
+    switch_delay: float = SWITCH_DELAY
+    """Planner take-over time after lift [s]."""
+    _tosses: dict[str, TossModel] = field(default_factory=dict)
+
+    @classmethod
+    def default(cls) -> EvaluationContext:
+        """Context on the shipped robot, tosses and models."""
+        return cls(robot=load_robot())
+
+    def toss_model(self, side: TossSide) -> TossModel:
+        """The toss model of one side (default recordings), cached."""
+        if side not in self._tosses:
+            self._tosses[side] = load_default_toss_model(side, self.robot)
+        return self._tosses[side]
+
+    @cached_property
+    def planner(self) -> Any:
+        """The strike planner (built on first use)."""
+        from studio.planner import StrikePlanner
+
+        return StrikePlanner(self.robot)
+
+    @cached_property
+    def collision(self) -> Any:
+        """The coal collision checker (built on first use)."""
+        from studio.collision import CollisionChecker
+
+        return CollisionChecker(self.robot)
+
+    @cached_property
+    def mujoco_scene(self) -> Any:
+        """The compiled MuJoCo scene (built on first use)."""
+        from studio.rollout import build_scene
+
+        return build_scene()
+
+
+@dataclass(frozen=True)
+class BallMetrics:
+    """Ball state summaries reported for every evaluation (world frame, SI)."""
+
+    second_bounce: dict[str, Any] | None
+    """At the second bounce: p, v, w after the bounce, topspin, sidespin, cork."""
+    net: dict[str, Any] | None
+    """At the net crossing: p, v, w, topspin, sidespin, cork, height, clearance."""
+    bounces: tuple[tuple[float, float, float], ...]
+    """Table bounce points after the strike."""
+    net_clearance: float | None
+    """Gap between ball bottom and net top at the crossing [m]."""
+    max_height: float | None
+    """Highest ball bottom above the table between first and second bounce [m]."""
+    racket_speed_out: float | None
+    """Ball speed just after the racket contact [m/s]."""
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Everything one serve evaluation produced."""
+
+    serve: HandServe
+    """The serve evaluated."""
+    status: Status
+    """Overall verdict."""
+    reason: str
+    """One-line explanation of the verdict."""
+    target: RacketTarget
+    """Racket target at tau."""
+    plan: Any | None
+    """The planner's result (None if planning was not reached)."""
+    t: npt.NDArray[np.float64] | None
+    """Full-serve command times (M,) [s] at 1 kHz (toss then strike)."""
+    u: npt.NDArray[np.float64] | None
+    """Full-serve joint commands (M, 8)."""
+    q: npt.NDArray[np.float64] | None
+    """Predicted joint positions (M, 8)."""
+    ball: Trajectory | None
+    """Predicted ball path after lift (analytic predictor)."""
+    toss_t: npt.NDArray[np.float64]
+    """Toss path times before lift (K,) [s] (ball riding in the cup)."""
+    toss_p: npt.NDArray[np.float64]
+    """Toss path positions before lift (K, 3) [m]."""
+    rollout: Any | None
+    """MuJoCo rollout result when requested."""
+    legality: LegalityReport | None
+    """Legality chain (of the rollout if there is one, else of the prediction)."""
+    reward: RewardTerms
+    """Reward F and its terms."""
+    metrics: BallMetrics | None
+    """Ball state summaries."""
+    collision: Any | None
+    """Collision report of the plan."""
+    timings_ms: dict[str, float]
+    """Wall time per stage [ms]."""
+
+    @property
+    def legal(self) -> bool:
+        return self.status == "legal"
+
+    def to_json(self) -> dict[str, Any]:
+        """The metrics as a JSON-ready dict (CLI ``--json``)."""
+        m = self.metrics
+        failed = None
+        if self.legality is not None and self.legality.first_failure is not None:
+            failed = self.legality.first_failure.name
+        elif self.status in ("planner_failed", "collision"):
+            failed = self.status
+        plan = self.plan
+        return {
+            "name": self.serve.name,
+            "side": self.serve.side,
+            "status": self.status,
+            "reason": self.reason,
+            "legal": self.legal,
+            "failed_check": failed,
+            "reward": self.reward.total,
+            "terms": self.reward.as_dict(),
+            "second_bounce": m.second_bounce if m else None,
+            "net": m.net if m else None,
+            "bounces": [list(b) for b in m.bounces] if m else [],
+            "net_clearance": m.net_clearance if m else None,
+            "max_height": m.max_height if m else None,
+            "planner": {
+                "status": getattr(plan, "status", None),
+                "reason": getattr(plan, "reason", None),
+                "solve_ms": getattr(plan, "solve_time_ms", None),
+            },
+            "checks": [
+                {"name": c.name, "passed": c.passed, "penalty": c.penalty, "detail": c.detail}
+                for c in (self.legality.checks if self.legality else ())
+            ],
+            "timings_ms": self.timings_ms,
+        }
+
+
+def _vec(a: npt.ArrayLike) -> list[float]:
+    return [float(x) for x in np.asarray(a, dtype=float)]
+
+
+def _state_summary(p: npt.ArrayLike, v: npt.ArrayLike, w: npt.ArrayLike) -> dict[str, Any]:
+    tb, ss, ck = spin_components(v, w)
+    return {
+        "p": _vec(p),
+        "v": _vec(v),
+        "w": _vec(w),
+        "speed": float(np.linalg.norm(v)),
+        "topspin": float(tb),
+        "sidespin": float(ss),
+        "cork": float(ck),
+    }
+
+
+def ball_metrics(traj: Trajectory | Any, *, strike_t: float | None) -> BallMetrics:
+    """Summaries of a ball path (predictor trajectory or rollout result)."""
+    contacts = getattr(traj, "events", None) or getattr(traj, "contacts", ())
+    after = [c for c in contacts if strike_t is not None and c.t > strike_t]
+    bounces = [c for c in after if c.kind == "table" and getattr(c, "part", "top") != "side"]
+    second = None
+    if len(bounces) >= 2:
+        b = bounces[1]
+        second = _state_summary(b.p, b.v_after, b.w_after)
+    t, p, v, w = (np.asarray(a) for a in (traj.t, traj.p, traj.v, traj.w))
+    mask = t >= (strike_t if strike_t is not None else t[0])
+    net = None
+    clearance = None
+    crossing = net_crossing(t[mask], p[mask]) if mask.sum() > 1 else None
+    if crossing is not None:
+        tc, pc = crossing
+        i = int(np.clip(np.searchsorted(t, tc), 1, len(t) - 1))
+        net = _state_summary(pc, v[i], w[i])
+        clearance = float(pc[2] - C.BALL_RADIUS - DEFAULT_COURT.net_height)
+        net["height"] = float(pc[2])
+        net["clearance"] = clearance
+    max_height = None
+    if bounces:
+        t_end = bounces[1].t if len(bounces) > 1 else t[-1]
+        seg = (t >= bounces[0].t) & (t <= t_end)
+        if seg.any():
+            max_height = float(np.max(p[seg, 2]) - C.BALL_RADIUS)
+    racket = [c for c in contacts if c.kind == "racket"]
+    return BallMetrics(
+        second_bounce=second,
+        net=net,
+        bounces=tuple(tuple(float(x) for x in b.p) for b in bounces),
+        net_clearance=clearance,
+        max_height=max_height,
+        racket_speed_out=float(np.linalg.norm(racket[0].v_after)) if racket else None,
+    )
+
+
+def strike_target(serve: HandServe, toss: TossModel) -> RacketTarget:
+    """Racket target at tau: p_tau = p_bar(tau) + delta_p, n_tau, v_tau (world frame)."""
+    p = serve.params
+    if not (toss.t[0] <= p.tau <= toss.t[-1]):
+        raise InvalidInputError(f"tau = {p.tau:.3f} s is outside the toss model's time range [{toss.t[0]:.2f}, {toss.t[-1]:.2f}] s")
+    mean = toss.mean_state(p.tau).p
+    pos = np.asarray(mean) + np.asarray(p.offset)
+    return RacketTarget(tuple(_vec(pos)), tuple(_vec(p.normal)), tuple(_vec(p.velocity)))  # type: ignore[arg-type]
+
+
+def _failure(serve: HandServe, status: Status, reason: str, target: RacketTarget, toss: TossModel, timings: dict[str, float], **kw: Any) -> Evaluation:
+    lift = toss.t <= toss.t_lift
+    return Evaluation(
+        serve=serve,
+        status=status,
+        reason=reason,
+        target=target,
+        plan=kw.get("plan"),
+        t=kw.get("t"),
+        u=kw.get("u"),
+        q=kw.get("q"),
+        ball=None,
+        toss_t=toss.t[lift],
+        toss_p=toss.p[lift],
+        rollout=None,
+        legality=None,
+        reward=RewardTerms(s_leg=PLANNER_FAILURE_PENALTY),
+        metrics=None,
+        collision=kw.get("collision"),
+        timings_ms=timings,
+    )
+
+
+def evaluate_serve(
+    serve: HandServe,
+    context: EvaluationContext,
+    *,
+    task: str | RewardWeights = "topspin_velocity",
+    toss_sample: int | None = None,
+    mujoco: bool = False,
+    warm_start: Any | None = None,
+) -> Evaluation:
+    """Evaluate one serve on the mean toss (``toss_sample=None``) or on a recorded toss.
+
+    Never raises for a serve that is merely bad (unreachable, colliding, illegal): the
+    verdict is in the result. Raises :class:`InvalidInputError` for malformed input.
+    """
+    weights = task_weights(task) if isinstance(task, str) else task
+    timings: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name] = 1000 * (now - clock)
+        clock = now
+
+    robot = context.robot
+    toss = context.toss_model(serve.side)
+    if toss_sample is not None and not (0 <= toss_sample < toss.n_tosses):
+        raise InvalidInputError(f"toss sample {toss_sample} out of range: the {serve.side} toss has {toss.n_tosses} recordings")
+    target = strike_target(serve, toss)
+    prim = toss.primitive
+    p = serve.params
+    t_switch = toss.t_lift + context.switch_delay
+    if p.tau <= t_switch + 0.05:
+        return _failure(serve, "planner_failed", f"contact time tau = {p.tau:.3f} s leaves no time to strike (lift at {toss.t_lift:.3f} s)", target, toss, timings)
+
+    # -- plan the strike from the toss state at the switch time ------------------------
+    u0, ud0, udd0, X0 = prim.command_state(t_switch)
+    t_switch = float(prim.t[prim.index_at(t_switch)])
+    from studio.planner import StrikeStart, StrikeTarget
+
+    plan = context.planner.plan(
+        StrikeStart(u=u0, ud=ud0, udd=udd0, X=X0),
+        StrikeTarget(
+            tau=p.tau - t_switch,
+            position=np.asarray(target.position),
+            normal=np.asarray(target.normal),
+            velocity=np.asarray(target.velocity),
+            tau_f=p.tau - t_switch + p.t_return,
+            u_rest=robot.q_rest,
+        ),
+        warm_start=warm_start,
+    )
+    lap("plan")
+    i_sw = prim.index_at(t_switch)
+    if not plan.ok:
+        return _failure(serve, "planner_failed", f"planner: {plan.status}: {plan.reason}", target, toss, timings, plan=plan)
+    t_full = np.concatenate([prim.t[:i_sw], t_switch + np.asarray(plan.t)])
+    u_full = np.concatenate([prim.u[:i_sw], plan.u])
+    q_full = np.concatenate([prim.q[:i_sw], plan.q])
+
+    # -- collision check of the whole serve motion --------------------------------------
+    report = context.collision.check(t_full, q_full)
+    lap("collision")
+    if report.collides:
+        return _failure(serve, "collision", f"collision: {report.describe()}", target, toss, timings, plan=plan, t=t_full, u=u_full, q=q_full, collision=report)
+
+    # -- ball: from just after lift, racket following the predicted joints --------------
+    t_start = toss.t_lift + 0.005
+    if toss_sample is None:
+        ball0 = toss.mean_state(t_start)
+    else:
+        ball0 = toss.ball_states_at(t_start)[toss_sample]
+    window = (t_full >= t_start - 0.01) & (t_full <= p.tau + 0.25)
+    tw, qw = t_full[window], q_full[window]
+    poses = [robot.fk(q) for q in qw]
+    motion = SampledRacketMotion(tw, np.array([ps.position for ps in poses]), np.array([ps.rotation for ps in poses]))
+    t_end = min(p.tau + FLIGHT_AFTER_CONTACT, float(t_full[-1]) + FLIGHT_AFTER_CONTACT)
+    ball = simulate(
+        BallState(ball0.p, ball0.v, np.zeros(3)),
+        t_end - t_start,
+        t0=t_start,
+        flight=context.flight,
+        racket_model=context.racket_model,
+        racket=motion,
+        max_table_bounces=2,
+    )
+    lap("ball")
+
+    rollout_result = None
+    source: Any = ball
+    if mujoco:
+        from studio.rollout import rollout
+
+        X = np.stack([q_full, np.gradient(q_full, t_full, axis=0)], axis=2)
+        rollout_result = rollout(context.mujoco_scene, t=t_full, X=X, ball="cup", t_end=t_end, racket_model=context.racket_model)
+        source = rollout_result
+        lap("mujoco")
+
+    contacts = tuple(getattr(source, "events", None) or getattr(source, "contacts", ()))
+    racket_hits = [c for c in contacts if c.kind == "racket"]
+    strike_t = racket_hits[0].t if racket_hits else None
+    release_t = float(getattr(rollout_result, "release_t", None) or toss.t_lift)
+    release_z = float(toss.mean_state(release_t).p[2]) if toss_sample is None else float(ball0.p[2] - ball0.v[2] * (t_start - release_t))
+    outcome = ServeOutcome(
+        t=np.asarray(source.t),
+        p=np.asarray(source.p),
+        contacts=contacts,
+        release_t=release_t,
+        release_z=release_z,
+        robot_rest_t=float(t_full[-1]),
+    )
+    legality = check_serve(outcome, params=context.rules)
+    metrics = ball_metrics(source, strike_t=strike_t)
+    if legality.legal and metrics.second_bounce is not None:
+        sb = metrics.second_bounce
+        terms = reward(p2=sb["p"], v2=sb["v"], w2=sb["w"], max_height=metrics.max_height or 0.0, weights=weights)
+    else:
+        terms = RewardTerms(s_leg=legality.penalty)
+    lap("checks")
+    failure = legality.first_failure
+    status: Status = "legal" if failure is None else "illegal"
+    reason = "legal serve" if failure is None else f"{failure.label}: {failure.detail}"
+    lift = toss.t <= toss.t_lift
+    return Evaluation(
+        serve=serve,
+        status=status,
+        reason=reason,
+        target=target,
+        plan=plan,
+        t=t_full,
+        u=u_full,
+        q=q_full,
+        ball=ball,
+        toss_t=toss.t[lift],
+        toss_p=toss.p[lift],
+        rollout=rollout_result,
+        legality=legality,
+        reward=terms,
+        metrics=metrics,
+        collision=report,
+        timings_ms=timings,
+    )
+
+
+# -- presentation helpers shared by the studio, the CLI and notebooks ---------------------
+
+
+def scene_frame(ev: Evaluation, context: EvaluationContext) -> SceneFrame:
+    """The 3D scene description of an evaluation (pure; no viser needed)."""
+    color = COLORS["legal"] if ev.status == "legal" else COLORS["illegal"]
+    segments = [PathSegment("toss", ev.toss_p, COLORS["toss"])]
+    markers: list[Marker] = []
+    if ev.ball is not None:
+        segments.append(PathSegment("flight", ev.ball.p, color))
+        bounce = 0
+        for k, e in enumerate(ev.ball.events):
+            label = e.kind
+            if e.kind == "table":
+                bounce += 1
+                label = f"bounce {bounce}"
+            markers.append(Marker(f"event_{k}", tuple(float(x) for x in e.p), COLORS.get(e.kind, COLORS["unknown"]) if e.kind != "table" else color, label))  # type: ignore[arg-type]
+    if ev.rollout is not None:
+        segments.append(PathSegment("mujoco", np.asarray(ev.rollout.p), COLORS["rollout"]))
+    playback = None
+    q0 = context.robot.q_flat
+    if ev.t is not None and ev.q is not None:
+        ball_p = np.full((len(ev.t), 3), np.nan)
+        if ev.ball is not None:
+            bt = ev.ball.t
+            inside = (ev.t >= bt[0]) & (ev.t <= bt[-1])
+            for i in range(3):
+                ball_p[inside, i] = np.interp(ev.t[inside], bt, ev.ball.p[:, i])
+        cup = ev.t < ev.toss_t[-1] if len(ev.toss_t) else np.zeros(len(ev.t), bool)
+        for i in range(3):
+            ball_p[cup, i] = np.interp(ev.t[cup], ev.toss_t, ev.toss_p[:, i])
+        playback = Playback(t=ev.t, q=ev.q, ball=ball_p)
+        q0 = ev.q[np.searchsorted(ev.t, ev.serve.params.tau).clip(0, len(ev.t) - 1)]
+    return SceneFrame(segments=tuple(segments), markers=tuple(markers), target=ev.target, robot_q=q0, playback=playback)
+
+
+def report_markdown(ev: Evaluation) -> tuple[str, str, str]:
+    """(status, checklist, metrics) as Markdown for GUI panels and notebooks."""
+    badge = {"legal": "LEGAL", "illegal": "ILLEGAL", "planner_failed": "NO PLAN", "collision": "COLLISION"}[ev.status]
+    plan = ev.plan
+    plan_line = "planner not reached"
+    if plan is not None:
+        plan_line = f"planner: **{plan.status}** ({plan.solver or 'no solver'}, {plan.iterations} it.) in {plan.solve_time_ms:.1f} ms"
+        if getattr(plan, "reason", ""):
+            plan_line += f" ({plan.reason})"
+    status = f"### {badge}: reward {ev.reward.total:+.3f}\n\n{ev.reason}\n\n{plan_line}"
+    if ev.legality is None:
+        checks = "_no ball simulated: the serve did not get past planning_"
+    else:
+        rows = ["| | check | penalty | detail |", "|---|---|---|---|"]
+        for c in ev.legality.checks:
+            rows.append(f"| {'✅' if c.passed else '❌'} | {c.label} | {c.penalty:g} | {c.detail} |")
+        checks = "\n".join(rows)
+    m = ev.metrics
+    lines = ["| metric | value |", "|---|---|"]
+    for k, val in ev.reward.as_dict().items():
+        lines.append(f"| {k} | {val:+.3f} |")
+    if m is not None:
+        if m.net is not None:
+            lines.append(f"| net crossing speed | {m.net['speed']:.2f} m/s |")
+            lines.append(f"| net top/side/cork spin | {m.net['topspin']:+.0f} / {m.net['sidespin']:+.0f} / {m.net['cork']:+.0f} rad/s |")
+        if m.net_clearance is not None:
+            lines.append(f"| net clearance | {100 * m.net_clearance:.1f} cm |")
+        if m.second_bounce is not None:
+            sb = m.second_bounce
+            lines.append(f"| 2nd bounce at | ({sb['p'][0]:+.2f}, {sb['p'][1]:+.2f}) m |")
+            lines.append(f"| 2nd bounce velocity | ({sb['v'][0]:+.2f}, {sb['v'][1]:+.2f}, {sb['v'][2]:+.2f}) m/s |")
+            lines.append(f"| 2nd bounce top/side/cork | {sb['topspin']:+.0f} / {sb['sidespin']:+.0f} / {sb['cork']:+.0f} rad/s |")
+        if m.max_height is not None:
+            lines.append(f"| max height after bounce 1 | {100 * m.max_height:.1f} cm |")
+        for i, b in enumerate(m.bounces[:2]):
+            lines.append(f"| bounce {i + 1} | ({b[0]:+.2f}, {b[1]:+.2f}) m |")
+    for k, val in ev.timings_ms.items():
+        lines.append(f"| time: {k} | {val:.1f} ms |")
+    return status, checks, "\n".join(lines)
+
