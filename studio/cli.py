@@ -19,6 +19,33 @@ def _cmd_app(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    import json
+
+    from studio.evaluate import EvaluationContext, evaluate_robust, evaluate_serve, report_markdown
+    from studio.serve import load_serve
+
+    serve = load_serve(args.serve)
+    context = EvaluationContext.default()
+    task = args.task or serve.task or "topspin_velocity"
+    if args.tosses > 1:
+        robust = evaluate_robust(serve, context, task=task, tosses=args.tosses, min_legal_fraction=args.legal_fraction)
+        evaluation = robust.evaluations[0]
+        payload = robust.to_json()
+    else:
+        evaluation = evaluate_serve(serve, context, task=task, mujoco=args.mujoco)
+        payload = evaluation.to_json()
+    if args.json:
+        print(json.dumps(payload, indent=2))
+    else:
+        status, checks, metrics = report_markdown(evaluation)
+        print(f"{serve.name} ({serve.side} toss, task {task})\n")
+        print(status, checks, metrics, sep="\n\n")
+        if args.tosses > 1:
+            print(f"\nover {args.tosses} recorded tosses: legal fraction {payload['legal_fraction']:.2f}, mean reward {payload['reward']:+.3f}, legal: {payload['legal']}")
+    return 0 if payload["legal"] else 1
+
+
 def _cmd_toss(args: argparse.Namespace) -> int:
     from studio.toss import toss_report
 
@@ -43,6 +70,15 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--serves", default=None, help="folder of hand-designed serve JSON files (default: examples/serves)")
     p.add_argument("--library", default=None, help="serve library folder to export to (default: ./serve-library)")
     handlers["app"] = _cmd_app
+
+    p = sub.add_parser("evaluate", help="plan, simulate, check and score a serve JSON file")
+    p.add_argument("serve", help="hand-designed serve JSON file")
+    p.add_argument("--task", default=None, help="reward task preset (default: the serve's task or topspin_velocity)")
+    p.add_argument("--tosses", type=int, default=1, help="evaluate on K recorded tosses (robust evaluation)")
+    p.add_argument("--legal-fraction", type=float, default=0.8, help="fraction of legal tosses for a legal serve (with --tosses)")
+    p.add_argument("--mujoco", action="store_true", help="check with the MuJoCo rollout instead of the analytic predictor")
+    p.add_argument("--json", action="store_true", help="print the metrics as JSON")
+    handlers["evaluate"] = _cmd_evaluate
 
     p = sub.add_parser("toss", help="analyse toss recordings: lift time, rise, spread")
     p.add_argument("--side", choices=("right", "left"), default="right")

@@ -294,46 +294,61 @@ def _failure(serve: HandServe, status: Status, reason: str, target: RacketTarget
     )
 
 
-def evaluate_serve(
-    serve: HandServe,
-    context: EvaluationContext,
-    *,
-    task: str | RewardWeights = "topspin_velocity",
-    toss_sample: int | None = None,
-    mujoco: bool = False,
-    warm_start: Any | None = None,
-) -> Evaluation:
-    """Evaluate one serve on the mean toss (``toss_sample=None``) or on a recorded toss.
+@dataclass(frozen=True)
+class ServeMotion:
+    """The planned robot motion of a serve (independent of which toss sample is used)."""
 
-    Never raises for a serve that is merely bad (unreachable, colliding, illegal): the
-    verdict is in the result. Raises :class:`InvalidInputError` for malformed input.
+    serve: HandServe
+    """The serve planned."""
+    target: RacketTarget
+    """Racket target at tau."""
+    plan: Any | None
+    """The strike plan (None if planning was not reached)."""
+    t: npt.NDArray[np.float64] | None
+    """Full-serve command times (M,) [s] (toss then strike), 1 kHz."""
+    u: npt.NDArray[np.float64] | None
+    """Joint commands (M, 8)."""
+    q: npt.NDArray[np.float64] | None
+    """Predicted joint positions (M, 8)."""
+    collision: Any | None
+    """Collision report of the whole motion."""
+    failure: tuple[Status, str] | None
+    """(status, reason) when the motion is not usable, else None."""
+    racket: SampledRacketMotion | None
+    """Racket motion around the strike, for the ball predictor."""
+    timings_ms: dict[str, float]
+    """Wall time per stage [ms]."""
+
+
+def _lap(timings: dict[str, float], name: str, since: float) -> float:
+    now = time.perf_counter()
+    timings[name] = timings.get(name, 0.0) + 1000 * (now - since)
+    return now
+
+
+def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any | None = None) -> ServeMotion:
+    """Decode the strike target, plan the strike from the toss and check for collisions.
+
+    Never raises for a target that is merely unreachable or unsafe: the failure is in
+    :attr:`ServeMotion.failure`.
     """
-    weights = task_weights(task) if isinstance(task, str) else task
+    from studio.planner import StrikeStart, StrikeTarget
+
     timings: dict[str, float] = {}
     clock = time.perf_counter()
-
-    def lap(name: str) -> None:
-        nonlocal clock
-        now = time.perf_counter()
-        timings[name] = 1000 * (now - clock)
-        clock = now
-
     robot = context.robot
     toss = context.toss_model(serve.side)
-    if toss_sample is not None and not (0 <= toss_sample < toss.n_tosses):
-        raise InvalidInputError(f"toss sample {toss_sample} out of range: the {serve.side} toss has {toss.n_tosses} recordings")
     target = strike_target(serve, toss)
     prim = toss.primitive
     p = serve.params
-    t_switch = toss.t_lift + context.switch_delay
+    t_switch = float(prim.t[prim.index_at(toss.t_lift + context.switch_delay)])
+
+    def failed(status: Status, reason: str, **kw: Any) -> ServeMotion:
+        return ServeMotion(serve, target, kw.get("plan"), kw.get("t"), kw.get("u"), kw.get("q"), kw.get("collision"), (status, reason), None, timings)
+
     if p.tau <= t_switch + 0.05:
-        return _failure(serve, "planner_failed", f"contact time tau = {p.tau:.3f} s leaves no time to strike (lift at {toss.t_lift:.3f} s)", target, toss, timings)
-
-    # -- plan the strike from the toss state at the switch time ------------------------
+        return failed("planner_failed", f"contact time tau = {p.tau:.3f} s leaves no time to strike (lift at {toss.t_lift:.3f} s)")
     u0, ud0, udd0, X0 = prim.command_state(t_switch)
-    t_switch = float(prim.t[prim.index_at(t_switch)])
-    from studio.planner import StrikeStart, StrikeTarget
-
     plan = context.planner.plan(
         StrikeStart(u=u0, ud=ud0, udd=udd0, X=X0),
         StrikeTarget(
@@ -346,41 +361,59 @@ def evaluate_serve(
         ),
         warm_start=warm_start,
     )
-    lap("plan")
-    i_sw = prim.index_at(t_switch)
+    clock = _lap(timings, "plan", clock)
     if not plan.ok:
-        return _failure(serve, "planner_failed", f"planner: {plan.status}: {plan.reason}", target, toss, timings, plan=plan)
+        return failed("planner_failed", f"planner: {plan.status}: {plan.reason}", plan=plan)
+    i_sw = prim.index_at(t_switch)
     t_full = np.concatenate([prim.t[:i_sw], t_switch + np.asarray(plan.t)])
     u_full = np.concatenate([prim.u[:i_sw], plan.u])
     q_full = np.concatenate([prim.q[:i_sw], plan.q])
-
-    # -- collision check of the whole serve motion --------------------------------------
     report = context.collision.check(t_full, q_full)
-    lap("collision")
+    clock = _lap(timings, "collision", clock)
     if report.collides:
-        return _failure(serve, "collision", f"collision: {report.describe()}", target, toss, timings, plan=plan, t=t_full, u=u_full, q=q_full, collision=report)
+        return failed("collision", f"collision: {report.describe()}", plan=plan, t=t_full, u=u_full, q=q_full, collision=report)
+    window = (t_full >= toss.t_lift - 0.01) & (t_full <= p.tau + 0.25)
+    poses = [robot.fk(q) for q in q_full[window]]
+    racket = SampledRacketMotion(t_full[window], np.array([ps.position for ps in poses]), np.array([ps.rotation for ps in poses]))
+    _lap(timings, "racket_fk", clock)
+    return ServeMotion(serve, target, plan, t_full, u_full, q_full, report, None, racket, timings)
 
-    # -- ball: from just after lift, racket following the predicted joints --------------
+
+def evaluate_motion(
+    motion: ServeMotion,
+    context: EvaluationContext,
+    *,
+    task: str | RewardWeights = "topspin_velocity",
+    toss_sample: int | None = None,
+    mujoco: bool = False,
+) -> Evaluation:
+    """Predict the ball for one toss (mean path or a recorded sample), check and score."""
+    weights = task_weights(task) if isinstance(task, str) else task
+    timings = dict(motion.timings_ms)
+    clock = time.perf_counter()
+    serve = motion.serve
+    toss = context.toss_model(serve.side)
+    if toss_sample is not None and not (0 <= toss_sample < toss.n_tosses):
+        raise InvalidInputError(f"toss sample {toss_sample} out of range: the {serve.side} toss has {toss.n_tosses} recordings")
+    if motion.failure is not None:
+        status, reason = motion.failure
+        return _failure(serve, status, reason, motion.target, toss, timings, plan=motion.plan, t=motion.t, u=motion.u, q=motion.q, collision=motion.collision)
+    assert motion.t is not None and motion.q is not None and motion.racket is not None
+    p = serve.params
+    t_full, q_full = motion.t, motion.q
     t_start = toss.t_lift + 0.005
-    if toss_sample is None:
-        ball0 = toss.mean_state(t_start)
-    else:
-        ball0 = toss.ball_states_at(t_start)[toss_sample]
-    window = (t_full >= t_start - 0.01) & (t_full <= p.tau + 0.25)
-    tw, qw = t_full[window], q_full[window]
-    poses = [robot.fk(q) for q in qw]
-    motion = SampledRacketMotion(tw, np.array([ps.position for ps in poses]), np.array([ps.rotation for ps in poses]))
-    t_end = min(p.tau + FLIGHT_AFTER_CONTACT, float(t_full[-1]) + FLIGHT_AFTER_CONTACT)
+    ball0 = toss.mean_state(t_start) if toss_sample is None else toss.ball_states_at(t_start)[toss_sample]
+    t_end = p.tau + FLIGHT_AFTER_CONTACT
     ball = simulate(
         BallState(ball0.p, ball0.v, np.zeros(3)),
         t_end - t_start,
         t0=t_start,
         flight=context.flight,
         racket_model=context.racket_model,
-        racket=motion,
+        racket=motion.racket,
         max_table_bounces=2,
     )
-    lap("ball")
+    clock = _lap(timings, "ball", clock)
 
     rollout_result = None
     source: Any = ball
@@ -390,13 +423,13 @@ def evaluate_serve(
         X = np.stack([q_full, np.gradient(q_full, t_full, axis=0)], axis=2)
         rollout_result = rollout(context.mujoco_scene, t=t_full, X=X, ball="cup", t_end=t_end, racket_model=context.racket_model)
         source = rollout_result
-        lap("mujoco")
+        clock = _lap(timings, "mujoco", clock)
 
     contacts = tuple(getattr(source, "events", None) or getattr(source, "contacts", ()))
     racket_hits = [c for c in contacts if c.kind == "racket"]
     strike_t = racket_hits[0].t if racket_hits else None
     release_t = float(getattr(rollout_result, "release_t", None) or toss.t_lift)
-    release_z = float(toss.mean_state(release_t).p[2]) if toss_sample is None else float(ball0.p[2] - ball0.v[2] * (t_start - release_t))
+    release_z = float(ball0.p[2] - ball0.v[2] * (t_start - release_t))
     outcome = ServeOutcome(
         t=np.asarray(source.t),
         p=np.asarray(source.p),
@@ -412,7 +445,7 @@ def evaluate_serve(
         terms = reward(p2=sb["p"], v2=sb["v"], w2=sb["w"], max_height=metrics.max_height or 0.0, weights=weights)
     else:
         terms = RewardTerms(s_leg=legality.penalty)
-    lap("checks")
+    _lap(timings, "checks", clock)
     failure = legality.first_failure
     status: Status = "legal" if failure is None else "illegal"
     reason = "legal serve" if failure is None else f"{failure.label}: {failure.detail}"
@@ -421,10 +454,10 @@ def evaluate_serve(
         serve=serve,
         status=status,
         reason=reason,
-        target=target,
-        plan=plan,
+        target=motion.target,
+        plan=motion.plan,
         t=t_full,
-        u=u_full,
+        u=motion.u,
         q=q_full,
         ball=ball,
         toss_t=toss.t[lift],
@@ -433,9 +466,90 @@ def evaluate_serve(
         legality=legality,
         reward=terms,
         metrics=metrics,
-        collision=report,
+        collision=motion.collision,
         timings_ms=timings,
     )
+
+
+def evaluate_serve(
+    serve: HandServe,
+    context: EvaluationContext,
+    *,
+    task: str | RewardWeights = "topspin_velocity",
+    toss_sample: int | None = None,
+    mujoco: bool = False,
+    warm_start: Any | None = None,
+) -> Evaluation:
+    """Evaluate one serve on the mean toss (``toss_sample=None``) or on a recorded toss.
+
+    Never raises for a serve that is merely bad (unreachable, colliding, illegal): the
+    verdict is in the result. Raises :class:`InvalidInputError` for malformed input.
+    """
+    motion = plan_motion(serve, context, warm_start=warm_start)
+    return evaluate_motion(motion, context, task=task, toss_sample=toss_sample, mujoco=mujoco)
+
+
+@dataclass(frozen=True)
+class RobustEvaluation:
+    """A serve evaluated on several recorded tosses (paper: multi-toss training)."""
+
+    evaluations: tuple[Evaluation, ...]
+    """One evaluation per toss sample (they share the plan)."""
+    min_legal_fraction: float
+    """Fraction p of legal tosses needed for the serve to count as legal."""
+
+    @property
+    def legal_fraction(self) -> float:
+        return sum(e.legal for e in self.evaluations) / len(self.evaluations)
+
+    @property
+    def legal(self) -> bool:
+        return self.legal_fraction >= self.min_legal_fraction
+
+    @property
+    def reward(self) -> float:
+        """Mean reward over the toss samples (penalties included)."""
+        return float(np.mean([e.reward.total for e in self.evaluations]))
+
+    def to_json(self) -> dict[str, Any]:
+        first = self.evaluations[0].to_json()
+        first.update(
+            {
+                "legal": self.legal,
+                "reward": self.reward,
+                "legal_fraction": self.legal_fraction,
+                "tosses": len(self.evaluations),
+                "per_toss": [{"legal": e.legal, "reward": e.reward.total, "failed_check": e.to_json()["failed_check"]} for e in self.evaluations],
+            }
+        )
+        return first
+
+
+def evaluate_robust(
+    serve: HandServe,
+    context: EvaluationContext,
+    *,
+    task: str | RewardWeights = "topspin_velocity",
+    tosses: int = 10,
+    min_legal_fraction: float = 0.8,
+    rng: np.random.Generator | None = None,
+) -> RobustEvaluation:
+    """Evaluate a serve on ``tosses`` recorded tosses drawn without replacement.
+
+    The motion is planned once (the target is tied to the mean toss path); only the
+    ball prediction is repeated per toss. Rewards are averaged; the serve is legal when
+    at least ``min_legal_fraction`` of the tosses are legal.
+    """
+    if not (0.0 < min_legal_fraction <= 1.0):
+        raise InvalidInputError(f"min_legal_fraction must be in (0, 1], got {min_legal_fraction}")
+    toss = context.toss_model(serve.side)
+    if not (1 <= tosses <= toss.n_tosses):
+        raise InvalidInputError(f"tosses must be in [1, {toss.n_tosses}] (recordings of the {serve.side} toss), got {tosses}")
+    rng = rng if rng is not None else np.random.default_rng(0)
+    samples = rng.choice(toss.n_tosses, size=tosses, replace=False)
+    motion = plan_motion(serve, context)
+    evaluations = tuple(evaluate_motion(motion, context, task=task, toss_sample=int(k)) for k in samples)
+    return RobustEvaluation(evaluations, min_legal_fraction)
 
 
 # -- presentation helpers shared by the studio, the CLI and notebooks ---------------------
