@@ -49,8 +49,10 @@ from studio.toss import TossModel, load_default_toss_model
 
 Status = Literal["legal", "illegal", "planner_failed", "collision"]
 
-SWITCH_DELAY = 0.02
-"""Time after the ball's lift at which the strike planner takes over from the toss [s]."""
+SWITCH_DELAY = 0.06
+"""Time after the ball's lift at which the strike planner takes over from the toss [s]:
+the ball clears the cup rim ~51 ms after release, so the strike may move the cup
+sideways only after that."""
 
 FLIGHT_AFTER_CONTACT = 1.6
 """How long the ball is followed after the contact time [s] (ends earlier at the floor)."""

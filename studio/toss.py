@@ -11,11 +11,15 @@ the ball's acceleration reaches gravity (free flight).
 Contents:
 
 - :func:`find_release` / :class:`Release`: when the ball leaves the cup along a
-  (predicted) racket motion: the first instant the contact force
-  ``m (a_cup + g e_z) . n_cup`` becomes negative.
+  (predicted) racket motion: the first instant the contact force along the cup
+  normal, ``m (a_cup + g e_z + k |v| v) . n_cup`` (gravity and air drag), vanishes
+  (assumes the cup does not accelerate sideways there, so the rim does not push the
+  ball).
 - :func:`make_toss` / :class:`TossPrimitive`: a flat, vertical-release toss for the
-  right or left side, commands at 1 kHz that invert the robot's joint model so the
-  predicted motion is the designed one, within every joint limit.
+  right or left side: the cup rises on an exactly vertical line (arm on a joint-space
+  line, gantry X cancelling its horizontal drift), then the racket steps aside and
+  down out of the falling ball's path; commands at 1 kHz that invert the robot's
+  joint model so the predicted motion is the designed one, within every joint limit.
 - :func:`simulate_tosses` / :class:`TossNoise`: synthetic camera recordings of
   repeated tosses (vibration, release jitter, air flow, tracking noise, camera rate,
   phase and clock offset).
@@ -95,6 +99,20 @@ class Release:
         return float(np.hypot(self.velocity[0], self.velocity[1]))
 
     @property
+    def horizontal_acceleration(self) -> float:
+        """Horizontal acceleration of the cup at release [m/s^2]."""
+        return float(np.hypot(self.cup_acceleration[0], self.cup_acceleration[1]))
+
+    @property
+    def sideways_acceleration(self) -> float:
+        """Cup acceleration perpendicular to the cup normal at release [m/s^2]: the push
+        the rim would have to give the ball sideways. :func:`find_release` assumes it is
+        ~0 (see there); :func:`make_toss` keeps it below
+        :data:`MAX_RELEASE_SIDEWAYS_ACCELERATION`."""
+        a = self.cup_acceleration
+        return float(np.linalg.norm(a - float(a @ self.normal) * self.normal))
+
+    @property
     def spin(self) -> float:
         """Magnitude of the spin at release [rad/s]."""
         return float(np.linalg.norm(self.angular_velocity))
@@ -108,18 +126,29 @@ class Release:
 
 
 def contact_margin(
-    cup_acceleration: npt.ArrayLike, cup_normal: npt.ArrayLike, *, gravity: float = C.GRAVITY
+    cup_acceleration: npt.ArrayLike,
+    cup_normal: npt.ArrayLike,
+    *,
+    gravity: float = C.GRAVITY,
+    velocity: npt.ArrayLike | None = None,
+    drag_k: float = 0.0,
 ) -> FloatArray:
     """Normal contact force per unit ball mass between cup and ball [m/s^2].
 
-    ``m_i = (a_cup,i + g e_z) . n_i`` for ``a: (N, 3)``, ``n: (N, 3)`` (or single ``(3,)``
-    vectors): the force the cup must push on the ball, along its normal, to keep it
-    riding along. The ball stays in the cup while it is ``>= 0``.
+    ``m_i = (a_cup,i + g e_z + k |v_i| v_i) . n_i`` for ``a: (N, 3)``, ``n: (N, 3)`` (or
+    single ``(3,)`` vectors): the force the cup must push on the ball, along its
+    normal, to keep it riding along against gravity and the air drag
+    ``-k |v| v`` (``drag_k`` = k [1/m], ``velocity`` = the ball's = the cup's velocity
+    [m/s] in still air; no drag term without it). The ball stays in the cup while it
+    is ``>= 0``.
     """
     a = np.asarray(cup_acceleration, dtype=float)
     n = np.asarray(cup_normal, dtype=float)
     a_plus_g = a.copy()
     a_plus_g[..., 2] += gravity
+    if velocity is not None and drag_k != 0.0:
+        v = np.asarray(velocity, dtype=float)
+        a_plus_g = a_plus_g + drag_k * np.linalg.norm(v, axis=-1, keepdims=True) * v
     return np.einsum("...i,...i->...", a_plus_g, n)
 
 
@@ -132,6 +161,7 @@ def find_release(
     cup_v: npt.ArrayLike | None = None,
     cup_a: npt.ArrayLike | None = None,
     rotation: npt.ArrayLike | None = None,
+    drag_k: float | None = None,
 ) -> Release | None:
     """Find when the ball leaves the ball cup along a (predicted) racket motion.
 
@@ -139,16 +169,35 @@ def find_release(
     the cup while the cup pushes on it, i.e. while the normal contact force is
     non-negative::
 
-        N / m = (a_cup + g e_z) . n_cup >= 0
+        N / m = (a_cup + g e_z + k |v_cup| v_cup) . n_cup >= 0
 
-    where ``a_cup`` is the acceleration of the cup's ball centre and ``n_cup`` the
-    unit cup/racket normal (face A, the cup's side). The cup's rim holds the ball
-    sideways, so tangential forces are not limited. The ball leaves at the first
-    instant the force becomes negative: the crossing is located by linear
-    interpolation of the margin between the two samples that bracket it; the release
-    position is Hermite-interpolated from positions and velocities, the velocity
-    linearly. After that the ball is in free flight (gravity, drag) from the returned
-    state, with the racket's angular velocity as spin (no rolling in the cup).
+    where ``a_cup`` and ``v_cup`` are the acceleration and velocity of the cup's ball
+    centre, ``n_cup`` the unit cup/racket normal (face A, the cup's side) and ``k`` the
+    ball's quadratic drag constant (still air): the drag on a rising ball presses it
+    into the cup, so it leaves when the cup decelerates at ``g + k v^2`` (about
+    10.5 m/s^2 at 2.7 m/s), where the free ball's own deceleration takes over without
+    a jump (no ball-in-cup overlap right after the release). The ball leaves at the first
+    instant this normal force vanishes (becomes negative): the crossing is located by
+    linear interpolation of the margin between the two samples that bracket it; the
+    release position is Hermite-interpolated from positions and velocities, the
+    velocity linearly. After that the ball is in free flight (gravity, drag) from the
+    returned state, with the racket's angular velocity as spin (no rolling in the cup).
+
+    Assumption: the rim does not push the ball sideways at the release, i.e. the cup's
+    acceleration perpendicular to ``n_cup`` is ~0 there
+    (:attr:`Release.sideways_acceleration`). Only the normal force is modelled: the
+    ball rests on the rim's inner edges (rim radius < ball radius), which could hold it
+    sideways while it is pressed in, but once the normal force vanishes a sideways
+    accelerating cup keeps pushing the ball with its rim and its wall soon hits it
+    (the MuJoCo rollout sees that as a robot contact), so the free flight from the
+    returned state would be wrong. Check ``sideways_acceleration`` of the result for
+    motions not made by :func:`make_toss` (which keeps it below
+    :data:`MAX_RELEASE_SIDEWAYS_ACCELERATION`).
+
+    Robustness: the normal is renormalised per sample; a margin that is exactly 0 at
+    a sample is still contact (``>= 0``); a ball that is not supported from the first
+    sample on is released at ``t[0]``; the first crossing counts (a ball once free
+    does not come back into the cup in this model).
 
     Feed it the *predicted* joint motion (after the joint dynamics model), not the
     commands: e.g. ``cup_p[i] = robot.cup_position(q[i])``.
@@ -165,6 +214,8 @@ def find_release(
         rotation: optional racket rotation matrices (racket to world), ``(N, 3, 3)``,
             for the full angular velocity ``omega^ = dR/dt R^T``; without it only the
             normal's turning rate ``n x dn/dt`` is reported.
+        drag_k: drag constant ``k = rho C_D A / (2 m)`` [1/m] of the ball; ``None``: that
+            of :data:`studio.ball.DEFAULT_FLIGHT`; ``0``: no drag.
 
     Returns:
         The :class:`Release`, or ``None`` if the ball stays in the cup over all samples.
@@ -204,7 +255,10 @@ def find_release(
         if a.shape != (N, 3):
             raise InvalidInputError(f"find_release: cup_a must be ({N}, 3), got {a.shape}")
 
-    margin = contact_margin(a, n, gravity=gravity)
+    k_drag = _drag_constant() if drag_k is None else float(drag_k)
+    if not (math.isfinite(k_drag) and k_drag >= 0.0):
+        raise InvalidInputError(f"find_release: drag_k must be finite and >= 0, got {drag_k}")
+    margin = contact_margin(a, n, gravity=gravity, velocity=v, drag_k=k_drag)
     negative = np.flatnonzero(margin < 0.0)
     if negative.size == 0:
         return None
@@ -276,6 +330,15 @@ DEFAULT_DT: Final[float] = 1e-3
 MAX_FLAT_TILT_DEG: Final[float] = 2.0
 """Largest tilt of the racket normal from vertical allowed during the lift [deg]."""
 
+MAX_RELEASE_SIDEWAYS_ACCELERATION: Final[float] = 0.5
+"""Largest cup acceleration perpendicular to its normal at the release [m/s^2] that
+:func:`make_toss` accepts: the release model assumes the rim does not push the ball
+sideways (see :func:`find_release`)."""
+
+CLEAR_MARGIN: Final[float] = 0.01
+"""Least horizontal gap [m] between the falling ball and the cup's base plate that
+:func:`make_toss` accepts after the racket cleared the ball's path."""
+
 
 def _smootherstep_terms(tau: FloatArray) -> tuple[FloatArray, ...]:
     """Quintic smootherstep s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5, its derivatives
@@ -293,6 +356,31 @@ def _smootherstep_terms(tau: FloatArray) -> tuple[FloatArray, ...]:
     return s, s1, s2, s3, i1, i2
 
 
+_SMOOTHSTEP9: Final = np.polynomial.Polynomial([0, 0, 0, 0, 0, 126, -420, 540, -315, 70])
+"""Degree-9 smoothstep ``s(tau)``: s(0) = 0, s(1) = 1, derivatives 1-4 zero at both ends."""
+
+
+def _smoothstep9_move(t: FloatArray, start: float, duration: float, distance: float) -> FloatArray:
+    """A rest-to-rest move by ``distance`` over ``[start, start + duration]`` [s].
+
+    Position is ``distance * s((t - start) / duration)`` with the degree-9 smoothstep,
+    so position is C^4 (the 5th derivative is piecewise continuous): joint commands
+    from the inverted joint model are then continuous up to acceleration.
+
+    Returns:
+        (6, M): the offset [m or rad] and its time derivatives of order 1-5 at ``t`` (M,).
+    """
+    tau = np.clip((np.asarray(t, dtype=float) - start) / duration, 0.0, 1.0)
+    inside = (tau > 0.0) & (tau < 1.0)
+    out = np.zeros((6, tau.size))
+    poly = _SMOOTHSTEP9
+    for m in range(6):
+        vals = poly(tau) * distance / duration**m
+        out[m] = vals if m == 0 else np.where(inside, vals, 0.0)
+        poly = poly.deriv()
+    return out
+
+
 @dataclass(frozen=True, slots=True)
 class LiftProfile:
     """Vertical motion of the ball cup during a toss, as a piecewise acceleration.
@@ -305,7 +393,8 @@ class LiftProfile:
 
     rest ``hold_start`` -> ramp ``0 -> lift_acceleration`` over ``ramp_up`` -> hold
     ``lift_hold`` -> ramp ``lift_acceleration -> -stop_deceleration`` over
-    ``ramp_release`` (the ball leaves the cup in this ramp, where ``a`` crosses ``-g``)
+    ``ramp_release`` (the ball leaves the cup in this ramp, where ``a`` crosses
+    ``-(g + k v^2)``, see :func:`find_release`)
     -> hold ``-stop_deceleration`` (length solved so that the cup ends at rest) -> ramp
     back to 0 over ``ramp_stop`` -> rest. :meth:`design` picks ``lift_hold`` and
     ``stop_deceleration`` for a wanted release speed.
@@ -730,19 +819,72 @@ def _flat_plane_basis(robot: Robot, q: FloatArray) -> FloatArray:
     return basis
 
 
+def _check_clearance(robot: Robot, t: FloatArray, cup_p: FloatArray, release: Release, t_clear: float) -> None:
+    """Check that the racket gets out of the way of the tossed ball (still air, no noise).
+
+    1. When the clearing move starts (``t_clear`` [s]) the ball has risen out of the
+       cup: its centre is above the cup's ball centre by more than the ball's sag below
+       the rim (``R - sqrt(R^2 - r_rim^2)``).
+    2. From the apex on, while the ball is at the height of the cup and handle
+       (``z_cup - 0.065 m <= z <= z_cup + 0.04 m``, about 2 R + the racket's thickness
+       below the cup centre), it is horizontally at least ``R + cup plate radius +``
+       :data:`CLEAR_MARGIN` from the cup centre. The blade starts 5 cm further along the
+       handle and the arm is farther back, so the cup and the handle are what the ball
+       can hit; :mod:`studio.rollout` checks the full geometry (tests).
+
+    Raises:
+        InvalidInputError: a check fails (raise ``clear_side``/``clear_delay``).
+    """
+    from studio import ball
+
+    rs = robot.spec.racket
+    R = rs.ball_radius
+    sag = R - math.sqrt(R * R - rs.cup_rim_radius**2)
+    FT, FP, FV = _free_flights(
+        release.position[None, :], release.velocity[None, :], np.array([release.time]),
+        max(float(t[-1]) - release.time, 1e-3), ball.DEFAULT_FLIGHT, h=5e-3,
+    )  # RK4 at 5 ms: ~1e-8 m on this smooth, spinless flight
+    ft, fp, fv = FT[0], FP[0], FV[0]
+    sel = t > release.time
+    tq = t[sel]
+    tq = tq[tq <= ft[-1]]
+    bp = _hermite(ft, fp, fv, tq)
+    cp = cup_p[sel][: tq.size]
+    k0 = int(np.searchsorted(tq, t_clear))
+    if k0 < tq.size and float(bp[k0, 2] - cp[k0, 2]) <= sag:
+        raise InvalidInputError(
+            f"make_toss: the racket starts clearing the ball's path at {t_clear:.3f} s while the ball is still in "
+            f"the cup ({(bp[k0, 2] - cp[k0, 2]) * 1e3:.1f} mm above its seat, sag {sag * 1e3:.1f} mm): raise clear_delay"
+        )
+    after_apex = np.arange(tq.size) >= int(np.argmax(bp[:, 2]))
+    band = after_apex & (bp[:, 2] >= cp[:, 2] - 0.065) & (bp[:, 2] <= cp[:, 2] + 0.04)
+    need = R + rs.cup_plate_radius + CLEAR_MARGIN
+    gap = np.hypot(bp[:, 0] - cp[:, 0], bp[:, 1] - cp[:, 1])
+    if np.any(band) and float(np.min(gap[band])) < need:
+        k = int(np.flatnonzero(band)[np.argmin(gap[band])])
+        raise InvalidInputError(
+            f"make_toss: the falling ball passes {gap[k] * 1e3:.0f} mm from the cup at {tq[k]:.3f} s "
+            f"(< {need * 1e3:.0f} mm): raise clear_side or start the clearing move earlier"
+        )
+
+
 def make_toss(
     robot: Robot,
     side: TossSide,
     *,
     rise: float = 0.35,
     lateral: float = 0.30,
-    start_height: float | None = 0.06,
+    start_height: float | None = 0.04,
     gantry_x: float | None = -0.40,
     lift_acceleration: float = 18.0,
     ramp_up: float = 0.20,
-    ramp_release: float = 0.15,
-    ramp_stop: float = 0.22,
+    ramp_release: float = 0.16,
+    ramp_stop: float = 0.20,
     hold_start: float = 0.05,
+    clear_side: float = 0.08,
+    clear_drop: float = 0.15,
+    clear_delay: float = 0.06,
+    clear_time: float = 0.40,
     duration: float = 1.4,
     dt: float = DEFAULT_DT,
     drag_k: float | None = None,
@@ -758,27 +900,50 @@ def make_toss(
       orientation of ``q_flat`` is kept);
     - the cup height follows a :class:`LiftProfile` ``z(t)`` (C^2 acceleration):
       accelerate up, then decelerate faster than gravity so the ball leaves the cup
-      where ``z'' = -g`` at the speed giving ``rise`` in air (drag of the ball flight
-      model), stop and hold until ``duration``;
-    - the joints move along a straight line in joint space ``q = q0 + s d``, with ``d``
-      in the null space of the racket's angular velocity and of the cup's lateral
+      where ``z'' = -(g + k v^2)`` (:func:`find_release`: gravity and the air drag on
+      the ball) at the speed giving ``rise`` in air (drag of the ball flight model),
+      and stop;
+    - the arm joints move along a straight line in joint space ``q = q0 + s d``, with
+      ``d`` in the null space of the racket's angular velocity and of the cup's lateral
       velocity (on the KUKA arm: A2 and A3 with A5 compensating), so the racket stays
       exactly flat and the cup moves in a vertical plane on a gentle curve; ``s = S(z)``
-      (Chebyshev interpolant of the inverse of the cup height along the line), and the
-      mix inside that plane is solved so the cup moves exactly vertically at the release
-      height. A joint-space line uses the arm far better than a straight vertical
-      Cartesian line, which exceeds the A2/A3 acceleration and jerk limits;
+      (Chebyshev interpolant of the inverse of the cup height along the line). The mix
+      inside that plane is solved so the arm alone moves the cup vertically at the
+      release height (the gantry is then at rest there). A joint-space line uses the arm
+      far better than a straight vertical Cartesian line, which exceeds the A2/A3
+      acceleration and jerk limits;
+    - the gantry's X axis (prismatic along world X) cancels the cup's horizontal drift
+      along that curve, ``gantry_x(t) = gantry_x - (Xc(z(t)) - Xc(z_0))`` (``Xc`` the
+      cup x along the line, Chebyshev in ``z``): the cup moves on the exactly vertical
+      line through its start point, with zero horizontal velocity *and acceleration*
+      during the lift and the stop; the whole racket stays behind the end line.
+      Without it the cup accelerated ~12 m/s^2 horizontally at the release, its rim
+      kept pushing the ball and its wall hit the ball ~17 ms later (see
+      :func:`find_release` for the assumption this satisfies). The gantry moves
+      back ~0.17 m during the lift;
+    - after the release the racket clears the falling ball's path: from
+      ``clear_delay`` after the release (the ball has risen out of the cup) the gantry's
+      Y axis moves the racket ``clear_side`` away from the table's centre line, and
+      once the lift has stopped the cup is lowered by ``clear_drop`` (rest-to-rest
+      degree-9 smoothsteps over ``clear_time``, C^4). The strike planner takes over
+      from the toss shortly after the release (``studio.evaluate``), so this part
+      only matters for continuity and for toss-only executions;
     - the commands invert the robot's joint model,
       ``u = q + (2 zeta / wn) q' + q'' / wn^2`` with exact derivatives (Faa di Bruno on
-      ``S(z(t))``), evaluated half a sample late to compensate the zero-order hold, so
-      the predicted joint motion is the designed one; ``u`` is continuous up to
-      acceleration with bounded jerk;
+      ``S(z(t))`` and ``Xc(z(t))``), evaluated half a sample late to compensate the
+      zero-order hold, so the predicted joint motion is the designed one; ``u`` is
+      continuous up to acceleration with bounded jerk;
     - the release is then found with :func:`find_release` on the predicted motion and
-      checked (vertical, at the designed speed).
+      checked (vertical, at the designed speed, no sideways cup acceleration), and so is
+      the clearance of the falling ball (:func:`_check_clearance`).
 
     The defaults (found by a search over start pose and profile times on the shipped
-    robot) give a 0.35 m rise (release at z = 0.42 m, 0.353 s after the start) with
-    commands at <= ~90 % of every velocity, acceleration and jerk limit.
+    robot) give a 0.35 m rise: release at x = -1.649 m (0.28 m behind the end line),
+    z = 0.419 m, 2.68 m/s, 0.359 s after the start; apex 0.769 m 0.27 s later; the
+    ball falls below z = 0.02 m 0.66 s after the release. Commands stay at <= 90 %
+    of every velocity, acceleration and jerk limit (binding: gantry X jerk, which
+    cancels the arm's x drift, and A5 jerk). Higher rises fail on those two limits
+    and on the geometry of the joint-space line, not on A2/A3.
 
     Args:
         robot: the serve robot (:func:`studio.robot.load_robot`).
@@ -786,11 +951,19 @@ def make_toss(
         rise: rise of the ball above the release point [m]; >= 0.16 (ITTF 2.6.2).
         lateral: distance of the cup from the robot's centre line ``y = 0`` [m].
         start_height: cup centre height at the start [m] (``None``: that of ``q_flat``);
-            low (6 cm) so that the arm has room to lift the ball within its limits.
-        gantry_x: gantry X position of the toss [m] (``None``: that of ``q_flat``); the
-            arm keeps the cup at the ``q_flat`` x (behind the end line).
+            low (4 cm: the ball 2 cm above the table level) so that the arm has room to
+            lift the ball within its limits.
+        gantry_x: gantry X position at the start [m] (``None``: that of ``q_flat``);
+            the arm's start pose puts the cup at the ``q_flat`` x, and the cup stays on
+            that x during the lift (the gantry moves back by the arm's x drift, ~0.17 m).
         lift_acceleration: upward cup acceleration of the lift [m/s^2].
         ramp_up, ramp_release, ramp_stop, hold_start: :class:`LiftProfile` times [s].
+        clear_side: sideways move of the racket (gantry Y, away from ``y = 0``) that
+            clears the falling ball's path [m].
+        clear_drop: lowering of the cup after the lift has stopped [m].
+        clear_delay: start of the sideways move after the (designed) release [s]; the
+            ball must have risen out of the cup by then.
+        clear_time: duration of the sideways move and of the lowering [s].
         duration: length of the primitive [s] (covers the ball's fall back to about
             table level).
         dt: command period [s].
@@ -802,13 +975,22 @@ def make_toss(
     Raises:
         InvalidInputError: bad argument, IK failure, no flat line releasing vertically
             at the release height, a joint limit violated (the message lists them),
-            racket tilt during the lift above :data:`MAX_FLAT_TILT_DEG`, no release or
-            a non-vertical one, or a ball in the cup below the playing surface / in
-            front of the end line.
+            racket tilt during the lift above :data:`MAX_FLAT_TILT_DEG`, no release, a
+            non-vertical one or one with the cup accelerating sideways, a racket that
+            does not clear the falling ball's path, or a ball in the cup below the
+            playing surface / in front of the end line.
     """
     if side not in TOSS_SIDES:
         raise InvalidInputError(f"make_toss: side must be one of {TOSS_SIDES}, got {side!r}")
-    for label, val, lo in (("rise", rise, C.TOSS_MIN_RISE), ("lateral", lateral, 0.0), ("dt", dt, 1e-9)):
+    for label, val, lo in (
+        ("rise", rise, C.TOSS_MIN_RISE),
+        ("lateral", lateral, 0.0),
+        ("dt", dt, 1e-9),
+        ("clear_side", clear_side, 0.0),
+        ("clear_drop", clear_drop, 0.0),
+        ("clear_delay", clear_delay, 0.0),
+        ("clear_time", clear_time, 1e-3),
+    ):
         if not (math.isfinite(val) and val >= lo):
             raise InvalidInputError(f"make_toss: {label} must be finite and >= {lo}, got {val}")
     k_drag = _drag_constant() if drag_k is None else float(drag_k)
@@ -821,7 +1003,9 @@ def make_toss(
         raise InvalidInputError(f"make_toss: the start pose is not flat (racket normal tilted {tilt0:.2f} deg)")
     z0 = float(robot.cup_position(q_start)[2])
 
-    # Height profile: its release (a = -g) is at height h_rel above the start, speed v_target.
+    # Height profile: its release (a = -(g + k v^2), see find_release) is at height h_rel
+    # above the start, speed v_target.
+    g_release = C.GRAVITY + k_drag * v_target**2
     profile = LiftProfile.design(
         v_target,
         lift_acceleration=lift_acceleration,
@@ -829,12 +1013,17 @@ def make_toss(
         ramp_release=ramp_release,
         ramp_stop=ramp_stop,
         hold_start=hold_start,
+        gravity=g_release,
     )
     if profile.duration + 0.05 > duration:
         raise InvalidInputError(f"make_toss: duration {duration} s shorter than the lift ({profile.duration:.3f} s)")
-    t_rel_design = profile.release_estimate()[0]
+    t_rel_design = profile.release_estimate(g_release)[0]
     h_rel = float(profile.evaluate([t_rel_design])[0, 0])
     travel = profile.travel
+    if clear_drop > travel:
+        raise InvalidInputError(f"make_toss: clear_drop {clear_drop} m exceeds the lift travel {travel:.3f} m")
+    if max(t_rel_design + clear_delay, profile.duration) + clear_time + 0.05 > duration:
+        raise InvalidInputError(f"make_toss: duration {duration} s too short for the clearing move after the release")
 
     # Joint-space line q(s) = q_start + s d(psi) in the flat, vertical-plane directions;
     # psi puts the point where the cup moves vertically at the release height.
@@ -894,11 +1083,13 @@ def make_toss(
     psi = 0.5 * (lo_psi + hi_psi)
     d = basis @ np.array([math.cos(psi), math.sin(psi)])
 
-    # Inverse map s = S(z) as a Chebyshev interpolant over the lift heights.
+    # Inverse map s = S(z) as a Chebyshev interpolant over the lift heights, and the
+    # cup's x along the line (gantry fixed) as a function of the height, Xc(z).
     z_lo, z_hi = z0 - 1e-3, z0 + travel + 2e-3
     n_nodes = 40
     z_nodes = z_lo + (np.sort(np.polynomial.chebyshev.chebpts1(n_nodes)) + 1.0) * 0.5 * (z_hi - z_lo)
     s_nodes = np.empty(n_nodes)
+    x_nodes = np.empty(n_nodes)
     s_prev = 0.0
     for i, zt in enumerate(z_nodes):
         s_i = s_prev
@@ -911,13 +1102,23 @@ def make_toss(
         else:
             raise InvalidInputError(f"make_toss: cannot reach cup height {zt:.3f} m along the lift")
         s_nodes[i] = s_prev = s_i
+        x_nodes[i] = float(robot.cup_position(q_start + s_i * d)[0])
     S = np.polynomial.Chebyshev.fit(z_nodes, s_nodes, n_nodes - 1, domain=[z_lo, z_hi])
+    Xc = np.polynomial.Chebyshev.fit(z_nodes, x_nodes, n_nodes - 1, domain=[z_lo, z_hi])
     S_d = [S.deriv(m) if m else S for m in range(6)]
+    Xc_d = [Xc.deriv(m) if m else Xc for m in range(6)]
     for zc in 0.5 * (z_nodes[1:] + z_nodes[:-1]):
-        e = abs(float(robot.cup_position(q_start + float(S(zc)) * d)[2]) - zc)
+        cup_c = robot.cup_position(q_start + float(S(zc)) * d)
+        e = max(abs(float(cup_c[2]) - zc), abs(float(cup_c[0]) - float(Xc(zc))))
         if e > 1e-8:
             raise InvalidInputError(f"make_toss: path interpolant inaccurate at z = {zc:.3f} m ({e:.1e} m)")
 
+    # Joint motion: arm on the line, q_arm(t) = q_start + S(z(t)) d; gantry X cancels the
+    # cup's x drift of the arm, gx(t) = gantry_x - (Xc(z(t)) - Xc(z0)), so the cup moves
+    # on the vertical line through its start point (zero horizontal velocity and
+    # acceleration during the whole lift and stop); then gantry Y and a descent clear the
+    # ball's path.
+    ix, iy = robot.joint_names.index("gantry_x"), robot.joint_names.index("gantry_y")
     wn = np.asarray(robot.dynamics.wn, dtype=float)
     zeta = np.asarray(robot.dynamics.zeta, dtype=float)
     c1 = 2.0 * zeta / wn
@@ -926,10 +1127,18 @@ def make_toss(
     t = np.arange(n_samples) * dt
     X0 = np.stack([q_start, np.zeros(8)], axis=1)
 
-    zd = profile.evaluate(t + 0.5 * dt)  # half-sample lead compensates the zero-order hold
+    te = t + 0.5 * dt  # half-sample lead compensates the zero-order hold
+    zd = profile.evaluate(te)
     zd[0] += z0
+    t_clear = t_rel_design + clear_delay
+    zd = zd + _smoothstep9_move(te, max(t_clear, profile.duration), clear_time, -clear_drop)
     sd = _faa_di_bruno([S_d[m](zd[0]) for m in range(6)], zd)  # s and its 5 time derivatives
+    xd = _faa_di_bruno([Xc_d[m](zd[0]) for m in range(6)], zd)  # arm-only cup x and derivatives
+    yd = _smoothstep9_move(te, t_clear, clear_time, (-1.0 if side == "right" else 1.0) * clear_side)
     qd = [sd[m][:, None] * d[None, :] for m in range(6)]
+    for m in range(6):
+        qd[m][:, ix] = -xd[m] + (float(Xc(z0)) if m == 0 else 0.0)
+        qd[m][:, iy] = yd[m]
     qd[0] = qd[0] + q_start[None, :]
     u = qd[0] + c1 * qd[1] + c2 * qd[2]
     ud = qd[1] + c1 * qd[2] + c2 * qd[3]
@@ -944,7 +1153,7 @@ def make_toss(
         cup_p[k] = robot.cup_position(qk)
         rot[k] = robot.fk(qk).rotation
     normals = rot[:, :, 2].copy()
-    release = find_release(t, cup_p, normals, rotation=rot)
+    release = find_release(t, cup_p, normals, rotation=rot, drag_k=k_drag)
     if release is None:
         raise InvalidInputError("make_toss: the ball never leaves the cup")
     if release.horizontal_speed > 0.01 or abs(float(release.velocity[2]) - v_target) > 0.01:
@@ -953,9 +1162,16 @@ def make_toss(
             f"vertical {v_target:.3f} m/s"
         )
 
+    if release.sideways_acceleration > MAX_RELEASE_SIDEWAYS_ACCELERATION:
+        raise InvalidInputError(
+            f"make_toss: the cup accelerates {release.sideways_acceleration:.3f} m/s^2 sideways at the release "
+            f"(> {MAX_RELEASE_SIDEWAYS_ACCELERATION} m/s^2): its rim would push the ball"
+        )
+
     problems = limit_violations(u, ud, udd, uddd, robot.limits, q=X[:, :, 0]) if check_limits else []
     if problems:
         raise InvalidInputError("make_toss: toss violates the joint limits: " + "; ".join(problems))
+    _check_clearance(robot, t, cup_p, release, t_clear)
     lift = t <= release.time
     tilt = np.degrees(np.arccos(np.clip(normals[lift, 2], -1.0, 1.0)))
     if float(np.max(tilt)) > MAX_FLAT_TILT_DEG:
@@ -1398,7 +1614,7 @@ def simulate_tosses(
         cup[k] = robot.cup_position(X[k, :, 0])
         rot[k] = robot.fk(X[k, :, 0]).rotation
     cup_v = np.gradient(cup, t, axis=0, edge_order=2)
-    rel = find_release(t, cup, rot[:, :, 2], rotation=rot)
+    rel = find_release(t, cup, rot[:, :, 2], rotation=rot, gravity=fl.gravity, drag_k=fl.drag_constant)
     if rel is None:
         raise InvalidInputError(f"simulate_tosses: the ball never leaves the cup in toss {primitive.name!r}")
     prefix = id_prefix or primitive.name
@@ -1542,8 +1758,15 @@ def estimate_t_lift(
     noise an acceleration estimate good to ~0.5 m/s^2 needs a 60-100 ms window, which
     rounds off the release and delays a threshold crossing by a good part of the
     window (tens of ms), while the acceleration itself is continuous at the release
-    (the cup releases the ball when its deceleration reaches g). The fit uses the same
-    physics without that bias.
+    (the cup releases the ball when its deceleration reaches g + drag). The fit uses
+    the same physics without that bias.
+
+    Accuracy: because the acceleration is continuous at the release, riding a few ms
+    longer or shorter changes the path only at third order in the shift; for a
+    vertical release (the cup moves only vertically, so x and y carry no information)
+    the estimate scatters by ~2.5 ms (std, up to ~5 ms; 20 tosses, default
+    :class:`TossNoise`), about 0.1 ms with tracking noise only. The mean path
+    ``p_bar(t)`` does not depend on it.
 
     Args:
         primitive: the toss (its predicted cup path).
@@ -1878,7 +2101,7 @@ def generate_default_recordings(
 
     Each side: :func:`default_toss` on the shipped robot, :func:`simulate_tosses` with
     the default :class:`TossNoise` and ``np.random.default_rng([seed, side_index])``,
-    saved with 4 decimals (0.1 ms, 0.1 mm).
+    toss ids ``<side>_<k>``, saved with 4 decimals (0.1 ms, 0.1 mm): ~165 KiB per side.
     """
     from studio.robot import load_robot
 
@@ -1888,7 +2111,7 @@ def generate_default_recordings(
     written = []
     for idx, side in enumerate(TOSS_SIDES):
         prim = default_toss(robot, side)
-        recs = simulate_tosses(robot, prim, n, np.random.default_rng([seed, idx]), noise=TossNoise())
+        recs = simulate_tosses(robot, prim, n, np.random.default_rng([seed, idx]), noise=TossNoise(), id_prefix=side)
         path = out / f"{side}.csv"
         save_recordings_csv(
             path,
