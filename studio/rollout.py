@@ -845,7 +845,7 @@ def rollout(
     cup_until = -1  # last grid index at which the ball is in the cup
     if isinstance(ball, str):
         track.ensure(n_total - 1)
-        release = find_release(grid, track.cup, track.R[:, :, 2], rotation=track.R, gravity=flight.gravity)
+        release = find_release(grid, track.cup, track.R[:, :, 2], rotation=track.R, gravity=flight.gravity, drag_k=flight.drag_constant)
         if release is None or release.time >= t_stop:
             return _in_cup_result(grid, track, Q, t_stop)
         t_start = float(release.time)
