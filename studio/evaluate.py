@@ -605,7 +605,7 @@ def report_markdown(ev: Evaluation) -> tuple[str, str, str]:
     else:
         rows = ["| | check | penalty | detail |", "|---|---|---|---|"]
         for c in ev.legality.checks:
-            rows.append(f"| {'✅' if c.passed else '❌'} | {c.label} | {c.penalty:g} | {c.detail} |")
+            rows.append(f"| {'pass' if c.passed else '**FAIL**'} | {c.label} | {c.penalty:g} | {c.detail} |")
         checks = "\n".join(rows)
     m = ev.metrics
     lines = ["| metric | value |", "|---|---|"]

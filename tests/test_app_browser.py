@@ -1,0 +1,119 @@
+"""The studio in a real browser (Debian chromium via playwright, headless).
+
+Screenshots of the states are saved to ``test-artifacts/``.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.browser
+
+ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
+CHROMIUM = "/usr/bin/chromium"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _wait(predicate, timeout: float = 60.0, what: str = "condition") -> None:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def studio(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[object, str, Path]]:
+    import viser
+
+    from studio.app import StudioApp
+    from studio.evaluate import EvaluationContext
+
+    port = _free_port()
+    serves = tmp_path_factory.mktemp("serves")
+    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    app = StudioApp(server, context=EvaluationContext.default(), serves_dir=serves, library_dir=serves / "library")
+    _wait(lambda: app.last is not None, 120, "first evaluation")
+    yield app, f"http://127.0.0.1:{port}", serves
+    app.worker.close()
+    server.stop()
+
+
+@pytest.fixture(scope="module")
+def page(studio: tuple[object, str, Path]) -> Iterator[object]:
+    from playwright.sync_api import sync_playwright
+
+    if not os.path.exists(CHROMIUM):
+        pytest.fail(f"{CHROMIUM} is missing: ./dev test installs Debian's chromium (apt-get install chromium)")
+    ARTIFACTS.mkdir(exist_ok=True)
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(
+            executable_path=CHROMIUM,
+            args=["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update", "--disable-sync", "--use-gl=swiftshader", "--enable-unsafe-swiftshader"],
+        )
+        pg = browser.new_page(viewport={"width": 1400, "height": 900})
+        pg.goto(studio[1])
+        pg.get_by_text("Racket velocity [m/s]").wait_for(timeout=60_000)
+        yield pg
+        browser.close()
+
+
+def _set_number(page, label: str, value: float) -> None:  # type: ignore[no-untyped-def]
+    """Type into the number field of the slider labelled ``label``."""
+    row = page.get_by_text(label, exact=True).first.locator("xpath=ancestor::div[contains(@class, 'mantine-Flex-root')][1]")
+    box = row.locator("input").last
+    box.fill(str(value))
+    box.press("Enter")
+
+
+def test_slider_change_replans_and_updates_checklist(studio, page) -> None:  # type: ignore[no-untyped-def]
+    app, _, _ = studio
+    page.screenshot(path=str(ARTIFACTS / "studio_initial.png"))
+    before = app.last
+    assert before.legal, before.reason  # the studio opens on a legal example serve
+    page.get_by_role("tab", name="Checks").click()
+    page.get_by_text("LEGAL").first.wait_for(timeout=30_000)
+    page.get_by_role("tab", name="Serve").click()
+    _set_number(page, "v_x", round(before.serve.params.velocity[0] - 0.6, 2))
+    _wait(lambda: app.last is not before and app.last.serve.params != before.serve.params, 60, "re-plan after slider change")
+    after = app.last
+    assert after.serve.params.velocity[0] == pytest.approx(before.serve.params.velocity[0] - 0.6, abs=0.051)
+    assert after.ball is not None and before.ball is not None
+    assert not (len(after.ball.p) == len(before.ball.p) and (after.ball.p == before.ball.p).all())  # the path moved
+    page.screenshot(path=str(ARTIFACTS / "studio_after_slider.png"))
+
+
+def test_illegal_serve_is_flagged(studio, page) -> None:  # type: ignore[no-untyped-def]
+    app, _, _ = studio
+    page.get_by_role("tab", name="Serve").click()
+    _set_number(page, "v_z", 4.5)  # racket flying upwards: the ball never bounces on the server's court
+    _set_number(page, "roll", 60.0)
+    _wait(lambda: app.last is not None and app.last.serve.params.velocity[2] == pytest.approx(4.5), 60, "evaluation of the illegal serve")
+    assert not app.last.legal
+    page.get_by_role("tab", name="Checks").click()
+    page.get_by_text("ILLEGAL").or_(page.get_by_text("NO PLAN")).or_(page.get_by_text("COLLISION")).first.wait_for(timeout=30_000)
+    page.get_by_text("FAIL").first.wait_for(timeout=30_000)
+    page.screenshot(path=str(ARTIFACTS / "studio_illegal.png"))
+
+
+def test_save_seed_writes_a_valid_serve_file(studio, page) -> None:  # type: ignore[no-untyped-def]
+    from studio.serve import load_serve
+
+    app, _, serves = studio
+    page.get_by_role("tab", name="Serve").click()
+    page.get_by_role("button", name="Save as seed").click()
+    _wait(lambda: any(serves.glob("*.json")), 30, "seed file")
+    saved = load_serve(next(serves.glob("*.json")))
+    assert saved.params == app.controls().serve.params

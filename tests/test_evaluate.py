@@ -1,0 +1,103 @@
+"""Serve evaluation: shipped examples are legal, failures are verdicts, JSON and scene output."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from studio.errors import InvalidInputError
+from studio.evaluate import EvaluationContext, evaluate_robust, evaluate_serve, report_markdown, scene_frame
+from studio.reward import PLANNER_FAILURE_PENALTY
+from studio.serve import HandServe, ServeParams, load_serve
+
+EXAMPLES = sorted((Path(__file__).resolve().parent.parent / "examples" / "serves").glob("*.json"))
+
+
+@pytest.fixture(scope="module")
+def context() -> EvaluationContext:
+    return EvaluationContext.default()
+
+
+def test_examples_cover_the_spins() -> None:
+    serves = [load_serve(p) for p in EXAMPLES]
+    kinds = {(s.side, s.extra.get("spin")) for s in serves}
+    for side in ("right", "left"):
+        for spin in ("topspin", "backspin", "sidespin"):
+            assert (side, spin) in kinds, f"no {spin} example for the {side} toss"
+
+
+@pytest.mark.parametrize("path", EXAMPLES, ids=[p.stem for p in EXAMPLES])
+def test_every_example_serve_is_legal(path: Path, context: EvaluationContext) -> None:
+    serve = load_serve(path)
+    ev = evaluate_serve(serve, context, task=serve.task or "topspin_velocity")
+    assert ev.legal, ev.reason
+    assert ev.plan is not None and ev.plan.ok
+    sb = ev.metrics.second_bounce  # type: ignore[union-attr]
+    assert sb is not None and sb["p"][0] > 0  # second bounce on the receiver's court
+    spin = serve.extra["spin"]
+    if spin == "topspin":
+        assert sb["topspin"] > 50
+    elif spin == "backspin":
+        # the ball crosses the net with backspin; the two table bounces erode it
+        assert ev.metrics.net["topspin"] < -50  # type: ignore[union-attr,index]
+        assert sb["topspin"] < 10
+    else:
+        assert abs(sb["sidespin"]) > 40
+    assert ev.reward.s_leg == 0.0 and ev.reward.total > 0
+
+
+def test_unreachable_serve_is_a_verdict_not_an_error(context: EvaluationContext) -> None:
+    # contact right after the lift: no time to strike
+    early = HandServe(name="early", side="right", params=ServeParams(tau=0.40, velocity=(3.0, 0, 0), yaw=math.pi / 2, roll=0.0))
+    ev = evaluate_serve(early, context)
+    assert ev.status == "planner_failed" and "no time" in ev.reason
+    assert ev.reward.total == PLANNER_FAILURE_PENALTY
+    # racket faster than the arm can move
+    fast = HandServe(name="fast", side="right", params=ServeParams(tau=0.85, velocity=(10.0, -5.0, 5.0), yaw=-1.0, roll=2.5))
+    ev = evaluate_serve(fast, context)
+    assert ev.status in ("planner_failed", "collision")
+    assert ev.reward.total == PLANNER_FAILURE_PENALTY
+    assert ev.to_json()["failed_check"] in ("planner_failed", "collision")
+    status, checks, _ = report_markdown(ev)
+    assert "NO PLAN" in status or "COLLISION" in status
+
+
+def test_contact_time_outside_the_toss_is_rejected(context: EvaluationContext) -> None:
+    serve = HandServe(name="late", side="left", params=ServeParams(tau=5.0, velocity=(3.0, 0, 0), yaw=math.pi / 2, roll=0.0))
+    with pytest.raises(InvalidInputError, match="tau = 5.000 s is outside"):
+        evaluate_serve(serve, context)
+
+
+def test_json_and_scene_of_a_legal_serve(context: EvaluationContext) -> None:
+    serve = load_serve(EXAMPLES[0])
+    ev = evaluate_serve(serve, context)
+    out = ev.to_json()
+    for key in ("legal", "failed_check", "reward", "terms", "second_bounce", "net_clearance", "max_height", "planner"):
+        assert key in out
+    assert out["failed_check"] is None and out["planner"]["status"] == "ok"
+    for key in ("p", "v", "w", "topspin", "sidespin"):
+        assert key in out["second_bounce"]
+    frame = scene_frame(ev, context)
+    names = [s.name for s in frame.segments]
+    assert names[:2] == ["toss", "flight"]
+    assert [m.label for m in frame.markers][:3] == ["racket", "bounce 1", "bounce 2"]
+    assert frame.playback is not None and frame.playback.q is not None
+    assert frame.playback.q.shape == (len(frame.playback.t), 8)
+    # the ball is drawn in the cup before lift and in flight after
+    assert np.isfinite(frame.playback.ball).all(axis=1).mean() > 0.5
+
+
+def test_robust_evaluation_plans_once(context: EvaluationContext) -> None:
+    serve = load_serve(EXAMPLES[0])
+    robust = evaluate_robust(serve, context, tosses=5, rng=np.random.default_rng(3))
+    assert len(robust.evaluations) == 5
+    plans = {id(e.plan) for e in robust.evaluations}
+    assert len(plans) == 1
+    rewards = [e.reward.total for e in robust.evaluations]
+    assert robust.reward == pytest.approx(np.mean(rewards))
+    assert 0.0 <= robust.legal_fraction <= 1.0
+    with pytest.raises(InvalidInputError, match="tosses must be in"):
+        evaluate_robust(serve, context, tosses=999)
