@@ -97,6 +97,27 @@ class EvaluationContext:
         return StrikePlanner(self.robot)
 
     @cached_property
+    def racket_poses(self) -> Any:
+        """Vectorized racket pose: ``(Q (N, 8)) -> (p (N, 3), R (N, 3, 3))`` (casadi FK).
+
+        One casadi call for a whole trajectory instead of N pinocchio calls from Python.
+        """
+        import casadi as ca
+
+        from studio.kinematics_casadi import frame_placement
+
+        q = ca.SX.sym("q", self.robot.nq)
+        pos, rot = frame_placement(self.robot.model, "racket", q)
+        fn = ca.Function("racket_pose", [q], [pos, ca.reshape(rot, 9, 1)])
+
+        def poses(Q: npt.NDArray[np.float64]) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+            P, Rf = fn(np.asarray(Q, dtype=float).T)
+            R = np.asarray(Rf).T.reshape(-1, 3, 3).transpose(0, 2, 1)  # column-major 3x3 blocks
+            return np.asarray(P).T, R
+
+        return poses
+
+    @cached_property
     def collision(self) -> Any:
         """The coal collision checker (built on first use)."""
         from studio.collision import CollisionChecker
@@ -375,8 +396,8 @@ def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any
     if report.collides:
         return failed("collision", f"collision: {report.describe()}", plan=plan, t=t_full, u=u_full, q=q_full, collision=report)
     window = (t_full >= toss.t_lift - 0.01) & (t_full <= p.tau + 0.25)
-    poses = [robot.fk(q) for q in q_full[window]]
-    racket = SampledRacketMotion(t_full[window], np.array([ps.position for ps in poses]), np.array([ps.rotation for ps in poses]))
+    positions, rotations = context.racket_poses(q_full[window])
+    racket = SampledRacketMotion(t_full[window], positions, rotations)
     _lap(timings, "racket_fk", clock)
     return ServeMotion(serve, target, plan, t_full, u_full, q_full, report, None, racket, timings)
 

@@ -101,3 +101,14 @@ def test_robust_evaluation_plans_once(context: EvaluationContext) -> None:
     assert 0.0 <= robust.legal_fraction <= 1.0
     with pytest.raises(InvalidInputError, match="tosses must be in"):
         evaluate_robust(serve, context, tosses=999)
+
+
+def test_vectorized_racket_poses_match_pinocchio(context: EvaluationContext) -> None:
+    robot = context.robot
+    rng = np.random.default_rng(7)
+    Q = np.array([robot.clip_to_limits(robot.q_flat + rng.normal(0.0, 0.4, 8)) for _ in range(20)])
+    P, R = context.racket_poses(Q)
+    for i, q in enumerate(Q):
+        pose = robot.fk(q)
+        np.testing.assert_allclose(P[i], pose.position, atol=1e-12)
+        np.testing.assert_allclose(R[i], pose.rotation, atol=1e-12)
