@@ -132,6 +132,7 @@ class StudioApp:
                 self.save_button = gui.add_button("Save as seed")
                 self.download_button = gui.add_button("Download JSON")
                 self.upload_button = gui.add_upload_button("Upload JSON", mime_type="application/json")
+                self.export_button = gui.add_button("Export to library")
         with tabs.add_tab("Checks"):
             self.status_md = gui.add_markdown("_evaluating..._")
             self.checks_md = gui.add_markdown("")
@@ -151,6 +152,7 @@ class StudioApp:
         self.save_button.on_click(lambda event: self._save_seed(event))
         self.download_button.on_click(lambda event: self._download(event))
         self.upload_button.on_upload(lambda event: self._upload(event))
+        self.export_button.on_click(lambda _event: self._export())
         self.play.on_click(lambda _event: self._toggle_play())
         self.time.on_update(lambda _event: None if self._playing else self.scene.show_time(self.time.value))
         self._refresh_serve_files()
@@ -279,6 +281,20 @@ class StudioApp:
             self._message(f"**Upload rejected:** {file.name}: not valid JSON ({err})")
         except StudioError as err:
             self._message(f"**Upload rejected:** {err}")
+
+    def _export(self) -> None:
+        from studio.library import ServeLibrary
+
+        evaluation = self.last
+        if evaluation is None:
+            self._message("**Export failed:** nothing evaluated yet")
+            return
+        try:
+            entry = ServeLibrary(self.library_dir).add(evaluation, provenance={"kind": "hand-designed", "tool": "studio"}, task=self.task.value)
+            verdict = "legal" if evaluation.legal else f"NOT legal ({evaluation.reason})"
+            self._message(f"Exported `{evaluation.serve.name}` ({verdict}) to `{self.library_dir}` as `{entry.id}`.")
+        except (StudioError, OSError) as err:
+            self._message(f"**Export failed:** {err}")
 
     def _message(self, text: str) -> None:
         self.message_md.content = text

@@ -35,6 +35,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     else:
         evaluation = evaluate_serve(serve, context, task=task, mujoco=args.mujoco)
         payload = evaluation.to_json()
+    if args.export:
+        from studio.library import ServeLibrary
+
+        entry = ServeLibrary(args.export).add(evaluation, provenance={"kind": "hand-designed", "file": str(args.serve)}, task=task)
+        payload["exported"] = {"library": str(args.export), "id": entry.id}
     if args.json:
         print(json.dumps(payload, indent=2))
     else:
@@ -43,6 +48,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         print(status, checks, metrics, sep="\n\n")
         if args.tosses > 1:
             print(f"\nover {args.tosses} recorded tosses: legal fraction {payload['legal_fraction']:.2f}, mean reward {payload['reward']:+.3f}, legal: {payload['legal']}")
+        if args.export:
+            print(f"\nexported to {args.export} as {payload['exported']['id']}")
     return 0 if payload["legal"] else 1
 
 
@@ -78,6 +85,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--legal-fraction", type=float, default=0.8, help="fraction of legal tosses for a legal serve (with --tosses)")
     p.add_argument("--mujoco", action="store_true", help="check with the MuJoCo rollout instead of the analytic predictor")
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
+    p.add_argument("--export", default=None, metavar="DIR", help="write the plan to the serve library folder DIR")
     handlers["evaluate"] = _cmd_evaluate
 
     p = sub.add_parser("toss", help="analyse toss recordings: lift time, rise, spread")

@@ -236,7 +236,7 @@ def check_serve(outcome: ServeOutcome, *, params: RuleParams = RuleParams(), cou
         results["robot_rest"] = (rest_ok, f"rest at {outcome.robot_rest_t}")
 
     checks = tuple(
-        Check(name, LABELS[name][0], LABELS[name][1], results[name][0], results[name][1]) for name in LABELS if name in results
+        Check(name, LABELS[name][0], LABELS[name][1], bool(results[name][0]), results[name][1]) for name in LABELS if name in results
     )
     return LegalityReport(checks)
 

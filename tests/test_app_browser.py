@@ -117,3 +117,18 @@ def test_save_seed_writes_a_valid_serve_file(studio, page) -> None:  # type: ign
     _wait(lambda: any(serves.glob("*.json")), 30, "seed file")
     saved = load_serve(next(serves.glob("*.json")))
     assert saved.params == app.controls().serve.params
+
+
+def test_export_puts_the_serve_in_the_library(studio, page) -> None:  # type: ignore[no-untyped-def]
+    from studio.library import ServeLibrary
+
+    app, _, serves = studio
+    page.get_by_role("tab", name="Serve").click()
+    page.get_by_role("button", name="Export to library").click()
+    library = ServeLibrary(serves / "library")
+    _wait(lambda: (serves / "library" / "index.json").exists() and len(library.entries()) == 1, 30, "library export")
+    entry = library.entries()[0]
+    assert entry.serve.params == app.last.serve.params
+    assert entry.arrays()["u"].shape[1] == 8
+    page.get_by_text("Exported").first.wait_for(timeout=10_000)
+    page.screenshot(path=str(ARTIFACTS / "studio_exported.png"))

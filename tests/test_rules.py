@@ -55,6 +55,7 @@ def test_good_serve_is_legal() -> None:
     o, _ = good()
     report = check_serve(o)
     assert report.legal and report.penalty == 0.0
+    assert all(type(c.passed) is bool for c in report.checks)  # JSON-serializable verdicts
     assert [c.name for c in report.checks] == [n for n in LABELS if n != "robot_rest"]
     assert serve_net_clearance(o.t, o.p) == pytest.approx(0.22 - 0.02 - 0.1525, abs=1e-3)
 

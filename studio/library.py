@@ -1,0 +1,225 @@
+"""Serve library: a folder a robot controller can read without this program's objects.
+
+Format (``DESIGN.md``, schema ``serve-studio/library@1``):
+
+- ``index.json``: ``{"schema": ..., "serves": [entry, ...]}``; each entry holds a stable
+  ``id``, ``name``, ``side``, ``task``, the serve parameters ``params`` (physical units,
+  as in serve JSON files), the predicted ball state at the net crossing and at the
+  second bounce, ``legal``, ``reward`` and its ``terms``, ``provenance`` (hand-designed
+  or optimizer run and seed), ``robot`` (model name and SHA-256 of the robot source and
+  URDF, joint limits scale), ``created`` (UTC ISO time), ``usage`` counters and the
+  ``arrays`` file name;
+- ``<id>.npz`` per serve (plain arrays, no pickled objects): ``t`` (M,) [s] and ``u``
+  (M, 8) joint commands of toss + strike + return at 1 kHz on the toss clock, ``q``
+  (M, 8) predicted joint positions, ``ball_t`` (K,), ``ball_p`` (K, 3) predicted ball
+  path, ``joint_names``.
+
+Writes are atomic (temporary file, then rename); loads validate the schema and fail with
+a :class:`~studio.errors.DataFileError` naming the file and the field; arrays are read
+with ``allow_pickle=False``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import re
+import tempfile
+import uuid
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from studio.errors import DataFileError, InvalidInputError
+from studio.paths import robots_dir
+from studio.robot_description import load_spec
+from studio.serve import HandServe, serve_from_json
+
+LIBRARY_SCHEMA = "serve-studio/library@1"
+"""Schema tag of the index file."""
+INDEX_NAME = "index.json"
+"""File name of the index inside a library folder."""
+_ID = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
+_ENTRY_KEYS = {"id", "name", "side", "task", "params", "legal", "reward", "arrays", "created"}
+_ARRAYS = ("t", "u", "q", "ball_t", "ball_p")
+
+
+def robot_identity() -> dict[str, str]:
+    """Name and SHA-256 digests of the shipped robot source (TOML) and URDF."""
+    folder = robots_dir()
+    out = {"name": "serve_robot"}
+    for key, name in (("toml_sha256", "serve_robot.toml"), ("urdf_sha256", "serve_robot.urdf")):
+        out[key] = hashlib.sha256((folder / name).read_bytes()).hexdigest()
+    return out
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+@dataclass(frozen=True)
+class LibraryEntry:
+    """One serve of a library (the index entry; arrays are loaded on demand)."""
+
+    data: dict[str, Any]
+    """The validated JSON entry."""
+    folder: Path
+    """The library folder."""
+
+    @property
+    def id(self) -> str:
+        return str(self.data["id"])
+
+    @property
+    def serve(self) -> HandServe:
+        """The serve parameters as a hand-designed serve (for the studio or as a seed)."""
+        d = self.data
+        return serve_from_json({"name": d["name"], "side": d["side"], "params": d["params"], "task": d.get("task")}, source=f"{self.folder / INDEX_NAME}: serve {self.id}")
+
+    def arrays(self) -> dict[str, npt.NDArray[Any]]:
+        """The serve's arrays, validated (never unpickled)."""
+        path = self.folder / str(self.data["arrays"])
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                out = {k: npz[k] for k in npz.files}
+        except (OSError, ValueError) as err:
+            raise DataFileError(path, f"cannot read arrays: {err}") from None
+        for key in _ARRAYS:
+            if key not in out:
+                raise DataFileError(path, f"missing array {key!r}")
+        m = out["t"].shape[0]
+        if out["u"].shape != (m, 8) or out["q"].shape != (m, 8):
+            raise DataFileError(path, f"arrays 'u' and 'q' must be ({m}, 8), got {out['u'].shape} and {out['q'].shape}")
+        if out["ball_p"].shape != (out["ball_t"].shape[0], 3):
+            raise DataFileError(path, f"array 'ball_p' must be ({out['ball_t'].shape[0]}, 3), got {out['ball_p'].shape}")
+        for key in _ARRAYS:
+            if not np.all(np.isfinite(out[key])):
+                raise DataFileError(path, f"array {key!r} holds non-finite values")
+        return out
+
+
+class ServeLibrary:
+    """A serve library folder: read, validate and add serves.
+
+    Args:
+        folder: the library folder; created on the first write.
+    """
+
+    def __init__(self, folder: str | Path) -> None:
+        self.folder = Path(folder)
+
+    @property
+    def index_path(self) -> Path:
+        return self.folder / INDEX_NAME
+
+    def entries(self) -> list[LibraryEntry]:
+        """All entries, validated. An absent library is empty."""
+        if not self.index_path.exists():
+            return []
+        try:
+            doc = json.loads(self.index_path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as err:
+            raise DataFileError(self.index_path, f"not valid JSON (line {err.lineno}, column {err.colno}): {err.msg}") from None
+        except OSError as err:
+            raise DataFileError(self.index_path, f"cannot read: {err}") from None
+        if not isinstance(doc, dict) or doc.get("schema") != LIBRARY_SCHEMA:
+            raise DataFileError(self.index_path, f"field 'schema': expected {LIBRARY_SCHEMA!r}, got {doc.get('schema') if isinstance(doc, dict) else type(doc).__name__!r}")
+        serves = doc.get("serves")
+        if not isinstance(serves, list):
+            raise DataFileError(self.index_path, "field 'serves': must be a list")
+        out: list[LibraryEntry] = []
+        seen: set[str] = set()
+        for i, entry in enumerate(serves):
+            where = f"serves[{i}]"
+            if not isinstance(entry, dict):
+                raise DataFileError(self.index_path, f"field '{where}': must be an object")
+            missing = sorted(_ENTRY_KEYS - set(entry))
+            if missing:
+                raise DataFileError(self.index_path, f"field '{where}': missing {missing}")
+            sid = entry["id"]
+            if not isinstance(sid, str) or not _ID.match(sid):
+                raise DataFileError(self.index_path, f"field '{where}.id': must match {_ID.pattern}, got {sid!r}")
+            if sid in seen:
+                raise DataFileError(self.index_path, f"field '{where}.id': duplicate id {sid!r}")
+            seen.add(sid)
+            if entry["arrays"] != f"{sid}.npz":
+                raise DataFileError(self.index_path, f"field '{where}.arrays': must be '{sid}.npz', got {entry['arrays']!r}")
+            if not isinstance(entry["legal"], bool):
+                raise DataFileError(self.index_path, f"field '{where}.legal': must be true or false")
+            reward = entry["reward"]
+            if isinstance(reward, bool) or not isinstance(reward, (int, float)) or not np.isfinite(reward):
+                raise DataFileError(self.index_path, f"field '{where}.reward': must be a finite number")
+            e = LibraryEntry(entry, self.folder)
+            e.serve  # validates name, side and params, naming the entry
+            out.append(e)
+        return out
+
+    def get(self, serve_id: str) -> LibraryEntry:
+        """The entry with ``serve_id`` (InvalidInputError if absent)."""
+        for e in self.entries():
+            if e.id == serve_id:
+                return e
+        raise InvalidInputError(f"serve {serve_id!r} not found in library {self.folder}")
+
+    def add(self, evaluation: Any, *, provenance: dict[str, Any] | None = None, task: str | None = None) -> LibraryEntry:
+        """Export an evaluated serve (:class:`studio.evaluate.Evaluation`) with its plan.
+
+        Raises InvalidInputError when the evaluation has no motion plan to export.
+        """
+        ev = evaluation
+        if ev.t is None or ev.u is None or ev.q is None:
+            raise InvalidInputError(f"serve {ev.serve.name!r} has no motion plan to export ({ev.status}: {ev.reason})")
+        entries = self.entries()  # validate before writing anything
+        self.folder.mkdir(parents=True, exist_ok=True)
+        slug = re.sub(r"[^a-z0-9]+", "-", ev.serve.name.lower()).strip("-")[:40] or "serve"
+        sid = f"{slug}-{uuid.uuid4().hex[:8]}"
+        ball_t = np.asarray(ev.ball.t) if ev.ball is not None else np.zeros(0)
+        ball_p = np.asarray(ev.ball.p) if ev.ball is not None else np.zeros((0, 3))
+        buf = io.BytesIO()
+        np.savez_compressed(
+            buf,
+            t=np.asarray(ev.t, dtype=float),
+            u=np.asarray(ev.u, dtype=float),
+            q=np.asarray(ev.q, dtype=float),
+            ball_t=ball_t,
+            ball_p=ball_p,
+            joint_names=np.array(load_spec().joint_names),
+        )
+        _atomic_write(self.folder / f"{sid}.npz", buf.getvalue())
+        m = ev.metrics
+        serve_json = ev.serve.to_json()
+        entry = {
+            "id": sid,
+            "name": ev.serve.name,
+            "side": ev.serve.side,
+            "task": task or ev.serve.task,
+            "params": serve_json["params"],
+            "net": m.net if m else None,
+            "second_bounce": m.second_bounce if m else None,
+            "legal": bool(ev.legal),
+            "reward": float(ev.reward.total),
+            "terms": ev.reward.as_dict(),
+            "provenance": provenance or {"kind": "hand-designed"},
+            "robot": robot_identity(),
+            "created": datetime.now(UTC).isoformat(timespec="seconds"),
+            "usage": {"used": 0, "won": 0, "lost": 0, "aces": 0},
+            "arrays": f"{sid}.npz",
+        }
+        doc = {"schema": LIBRARY_SCHEMA, "serves": [e.data for e in entries] + [entry]}
+        _atomic_write(self.index_path, (json.dumps(doc, indent=2) + "\n").encode("utf-8"))
+        return LibraryEntry(entry, self.folder)

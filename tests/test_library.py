@@ -1,0 +1,89 @@
+"""Serve library: export round trip, validation of corrupt files, no pickles."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from studio.errors import DataFileError, InvalidInputError
+from studio.evaluate import EvaluationContext, evaluate_serve
+from studio.library import INDEX_NAME, ServeLibrary
+from studio.serve import load_serve
+
+EXAMPLE = sorted((Path(__file__).resolve().parent.parent / "examples" / "serves").glob("topspin_right.json"))[0]
+
+
+@pytest.fixture(scope="module")
+def evaluation():  # type: ignore[no-untyped-def]
+    serve = load_serve(EXAMPLE)
+    return evaluate_serve(serve, EvaluationContext.default())
+
+
+def test_export_and_read_back_is_identical(tmp_path: Path, evaluation) -> None:  # type: ignore[no-untyped-def]
+    lib = ServeLibrary(tmp_path / "lib")
+    entry = lib.add(evaluation, provenance={"kind": "hand-designed", "file": EXAMPLE.name})
+    again = ServeLibrary(tmp_path / "lib").get(entry.id)
+    assert again.serve.params == evaluation.serve.params
+    assert again.serve.side == evaluation.serve.side and again.serve.name == evaluation.serve.name
+    arrays = again.arrays()
+    np.testing.assert_array_equal(arrays["t"], evaluation.t)
+    np.testing.assert_array_equal(arrays["u"], evaluation.u)
+    np.testing.assert_array_equal(arrays["q"], evaluation.q)
+    np.testing.assert_array_equal(arrays["ball_p"], evaluation.ball.p)
+    assert np.all(np.diff(arrays["t"]) == pytest.approx(1e-3))  # 1 kHz
+    assert again.data["legal"] is True and again.data["reward"] == pytest.approx(evaluation.reward.total)
+    assert len(again.data["robot"]["urdf_sha256"]) == 64
+    # a second export appends, ids stay unique
+    lib.add(evaluation)
+    ids = [e.id for e in lib.entries()]
+    assert len(ids) == 2 and len(set(ids)) == 2
+    assert not list((tmp_path / "lib").glob(".*tmp"))  # atomic writes leave no temporaries
+
+
+def test_corrupt_index_is_rejected_with_file_and_field(tmp_path: Path, evaluation) -> None:  # type: ignore[no-untyped-def]
+    lib = ServeLibrary(tmp_path)
+    lib.add(evaluation)
+    index = tmp_path / INDEX_NAME
+    doc = json.loads(index.read_text())
+    for mutate, field in [
+        (lambda d: d.__setitem__("schema", "other"), "schema"),
+        (lambda d: d["serves"][0].__setitem__("reward", "high"), "serves[0].reward"),
+        (lambda d: d["serves"][0].__setitem__("id", "../evil"), "serves[0].id"),
+        (lambda d: d["serves"][0]["params"].__setitem__("tau", None), "params.tau"),
+        (lambda d: d["serves"][0].pop("legal"), "serves[0]"),
+    ]:
+        bad = json.loads(json.dumps(doc))
+        mutate(bad)
+        index.write_text(json.dumps(bad))
+        with pytest.raises(DataFileError, match=f"index.json.*{field.replace('[', '.').replace(']', '.')}"):
+            lib.entries()
+    index.write_text("{broken")
+    with pytest.raises(DataFileError, match="index.json: not valid JSON"):
+        lib.entries()
+
+
+def test_arrays_are_never_unpickled(tmp_path: Path, evaluation) -> None:  # type: ignore[no-untyped-def]
+    lib = ServeLibrary(tmp_path)
+    entry = lib.add(evaluation)
+    path = tmp_path / entry.data["arrays"]
+    np.savez(path, t=np.array([object()], dtype=object), u=np.zeros((1, 8)), q=np.zeros((1, 8)), ball_t=np.zeros(1), ball_p=np.zeros((1, 3)))
+    with pytest.raises(DataFileError, match=entry.data["arrays"]):
+        entry.arrays()
+    np.savez(path, t=np.zeros(3), u=np.zeros((2, 8)), q=np.zeros((3, 8)), ball_t=np.zeros(1), ball_p=np.zeros((1, 3)))
+    with pytest.raises(DataFileError, match="'u' and 'q'"):
+        entry.arrays()
+
+
+def test_serve_without_plan_cannot_be_exported(tmp_path: Path) -> None:
+    import math
+
+    from studio.serve import HandServe, ServeParams
+
+    early = HandServe(name="early", side="right", params=ServeParams(tau=0.4, velocity=(3.0, 0, 0), yaw=math.pi / 2, roll=0.0))
+    ev = evaluate_serve(early, EvaluationContext.default())
+    with pytest.raises(InvalidInputError, match="no motion plan"):
+        ServeLibrary(tmp_path).add(ev)
+    assert not (tmp_path / INDEX_NAME).exists()
