@@ -37,8 +37,8 @@ import time
 
 import numpy as np
 
-from studio.robot import load_robot
 from studio.planner import StrikePlanner, StrikeStart, StrikeTarget
+from studio.robot import load_robot
 from studio.serve import racket_normal
 from studio.toss import load_default_toss_model
 
@@ -46,26 +46,22 @@ SWITCH_DELAY = 0.02  # [s], as studio.evaluate.SWITCH_DELAY
 
 
 def ik(robot, q0, p, n, iters=60):  # type: ignore[no-untyped-def]
-    """Damped least-squares IK on racket position and normal; returns q or None."""
+    """Damped least-squares IK on the racket position and face normal (the roll about
+    the normal is left free); returns q within the limits, or None if not converged."""
     q = q0.copy()
     lo, hi = robot.limits.lower, robot.limits.upper
     for _ in range(iters):
         pose = robot.fk(q)
-        J = robot.racket_jacobian(q)
         e_p = p - pose.position
-        e_n = np.cross(pose.normal, n)  # rotation taking the normal to n (small angle)
-        if np.linalg.norm(e_p) < 1e-6 and np.linalg.norm(e_n) < 1e-6 and pose.normal @ n > 0:
+        e_n = np.cross(pose.normal, n)  # rotation vector taking the normal towards n
+        if pose.normal @ n < 0.0:  # beyond 90 deg: turn at a fixed rate about any perpendicular
+            axis = e_n if np.linalg.norm(e_n) > 1e-9 else np.cross(pose.normal, [1.0, 0.0, 0.0])
+            e_n = axis / np.linalg.norm(axis)
+        if np.linalg.norm(e_p) < 1e-6 and np.linalg.norm(e_n) < 1e-6:
             return q
-        if pose.normal @ n < 0:
-            e_n = np.cross(pose.normal, n) + 0.5 * np.cross(pose.normal, np.cross(pose.normal, -n) + 1e-3)
-        # The roll about the normal is free: constrain only the normal's two tangential rates.
-        Jw = J[3:]
-        Jn = np.cross(np.eye(3), pose.normal) @ Jw * 0 + Jw  # angular velocity rows
-        A = np.vstack([J[:3], Jn])
+        A = robot.racket_jacobian(q)  # rows: linear (3), angular (3) velocity
         e = np.concatenate([e_p, e_n])
-        lam = 1e-3
-        dq = A.T @ np.linalg.solve(A @ A.T + lam * np.eye(6), e)
-        # Remove the component of the angular step along n (free roll): project it out.
+        dq = A.T @ np.linalg.solve(A @ A.T + 1e-3 * np.eye(6), e)
         q = np.clip(q + np.clip(dq, -0.3, 0.3), lo, hi)
     return None
 
@@ -138,7 +134,6 @@ def main() -> None:
     parser.add_argument("--n", type=int, default=200, help="reachable (certified) targets")
     parser.add_argument("--random", type=int, default=100, help="unfiltered random targets")
     parser.add_argument("--seed", type=int, default=7)
-    parser.add_argument("--no-fallback-run", action="store_true", help="skip the IPOPT comparison column")
     args = parser.parse_args()
 
     robot = load_robot()
@@ -149,12 +144,9 @@ def main() -> None:
     print(f"targets: {len(reach)} reachable (certified, {tries} draws, {time.perf_counter() - t0:.1f} s), "
           f"{len(rand)} random")
 
-    try:
-        from studio.collision import CollisionChecker
+    from studio.collision import CollisionChecker
 
-        checker = CollisionChecker(robot)
-    except ImportError:
-        checker = None
+    checker = CollisionChecker(robot)
 
     # Warm-up (casadi/daqp first calls).
     planner.plan(reach[0][2], reach[0][3])
@@ -174,15 +166,14 @@ def main() -> None:
             if plan.ok:
                 ok += 1
                 errs.append((plan.position_error, plan.angle_error, plan.velocity_error))
-                if checker is not None:
-                    prim = tosses[side].primitive
-                    i_sw = prim.index_at(t_sw)
-                    t_full = np.concatenate([prim.t[:i_sw], t_sw + plan.t])
-                    q_full = np.concatenate([prim.q[:i_sw], plan.q])
-                    t2 = time.perf_counter()
-                    rep = checker.check(t_full, q_full)
-                    coll_ms.append(1e3 * (time.perf_counter() - t2))
-                    n_coll += int(rep.collides)
+                prim = tosses[side].primitive
+                i_sw = prim.index_at(t_sw)
+                t_full = np.concatenate([prim.t[:i_sw], t_sw + plan.t])
+                q_full = np.concatenate([prim.q[:i_sw], plan.q])
+                t2 = time.perf_counter()
+                rep = checker.check(t_full, q_full)
+                coll_ms.append(1e3 * (time.perf_counter() - t2))
+                n_coll += int(rep.collides)
         med, p95, mx = stats(ms)
         rate = ok / max(1, len(targets))
         results[name] = dict(n=len(targets), success_rate=rate, median_ms=med, p95_ms=p95, max_ms=mx)

@@ -16,17 +16,18 @@ through a custom collision detector based on Coal". This module does the same:
   named poses ``q_rest`` and ``q_flat`` (permanent contacts of the model, listed in
   :attr:`CollisionChecker.ignored_pairs`).
 
-Sampling: a trajectory is checked at every sample (1 kHz for plans). Broad phase: every
-geometry is enclosed in its bounding sphere; the sphere centres of all samples are
-computed at once by a casadi forward-kinematics function mapped over the samples, and
-(sample, pair) candidates are the robot/robot sphere pairs that overlap and the robot
-spheres that reach an (axis-aligned) court box or the floor. Narrow phase: coal checks
-only the candidates (pinocchio ``computeCollision`` per pair). At 1 kHz and racket
-speeds up to 10 m/s a point moves at most 1 cm between samples, less than the thinnest
-obstacle plus the racket (4 mm net + 14 mm blade), so a contact cannot be stepped over
-(it may be reported up to 1 ms late). ``stride`` > 1 checks every stride-th sample
-only (faster, weaker guarantee). (pinocchio's own broad-phase managers were tried and
-rejected: they skipped the forearm/flange pair.)
+Sampling: a trajectory is checked at every sample (1 kHz for plans). Broad phase,
+vectorised over all samples with numpy (batched forward kinematics of the joint
+frames): one bounding sphere per link, then per geometry its bounding sphere (or
+oriented box for boxes such as the gantry beam); (sample, pair) candidates are the
+overlapping robot/robot volumes and the robot volumes reaching a court box or the
+floor. Narrow phase: coal checks only the candidates (pinocchio ``computeCollision``
+per pair). At 1 kHz and racket speeds up to 10 m/s a point moves at most 1 cm between
+samples, less than the thinnest obstacle plus the racket (4 mm net + 14 mm blade), so
+a contact cannot be stepped over (it may be reported up to 1 ms late). ``stride`` > 1
+checks every stride-th sample only (faster, weaker guarantee). pinocchio's own
+broad-phase managers were tried and rejected: they skipped the forearm/flange pair
+(link_4/link_6) in 112 of 1500 random poses where it collides.
 """
 
 from __future__ import annotations
@@ -149,7 +150,8 @@ class CollisionChecker:
         self._build_broad_phase(court if floor else None, n_robot, env)
 
     def _build_broad_phase(self, court: Court | None, n_robot: int, env: list[tuple[str, object, pin.SE3]]) -> None:
-        """Bounding spheres of the robot geometries (casadi centres), court AABBs."""
+        """Bounding volumes of the robot geometries (spheres, oriented boxes, one sphere
+        per link) and the court's axis-aligned boxes, for :meth:`_candidates`."""
         gm, model = self.geom_model, self.robot.model
         self._fk = _BatchJointFK(model)
         radii, halves, joints, local_p, local_R = [], [], [], [], []

@@ -77,6 +77,7 @@ class EvaluationContext:
     switch_delay: float = SWITCH_DELAY
     """Planner take-over time after lift [s]."""
     _tosses: dict[str, TossModel] = field(default_factory=dict)
+    _toss_reports: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
     def default(cls) -> EvaluationContext:
@@ -123,6 +124,14 @@ class EvaluationContext:
         from studio.collision import CollisionChecker
 
         return CollisionChecker(self.robot)
+
+    def toss_collision(self, side: TossSide, n: int) -> Any:
+        """Collision report of the first ``n`` samples of a side's toss (cached)."""
+        key = f"{side}:{n}"
+        if key not in self._toss_reports:
+            prim = self.toss_model(side).primitive
+            self._toss_reports[key] = self.collision.check(prim.t[:n], prim.q[:n])
+        return self._toss_reports[key]
 
     @cached_property
     def mujoco_scene(self) -> Any:
@@ -355,7 +364,7 @@ def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any
     Never raises for a target that is merely unreachable or unsafe: the failure is in
     :attr:`ServeMotion.failure`.
     """
-    from studio.planner import StrikeStart, StrikeTarget
+    from studio.planner import StrikeTarget, start_from_toss
 
     timings: dict[str, float] = {}
     clock = time.perf_counter()
@@ -371,9 +380,10 @@ def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any
 
     if p.tau <= t_switch + 0.05:
         return failed("planner_failed", f"contact time tau = {p.tau:.3f} s leaves no time to strike (lift at {toss.t_lift:.3f} s)")
-    u0, ud0, udd0, X0 = prim.command_state(t_switch)
+    # The strike continues the toss commands u[:k] seamlessly from the predicted state at t_k.
+    start, i_sw = start_from_toss(prim, t_switch)
     plan = context.planner.plan(
-        StrikeStart(u=u0, ud=ud0, udd=udd0, X=X0),
+        start,
         StrikeTarget(
             tau=p.tau - t_switch,
             position=np.asarray(target.position),
@@ -387,11 +397,13 @@ def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any
     clock = _lap(timings, "plan", clock)
     if not plan.ok:
         return failed("planner_failed", f"planner: {plan.status}: {plan.reason}", plan=plan)
-    i_sw = prim.index_at(t_switch)
     t_full = np.concatenate([prim.t[:i_sw], t_switch + np.asarray(plan.t)])
     u_full = np.concatenate([prim.u[:i_sw], plan.u])
     q_full = np.concatenate([prim.q[:i_sw], plan.q])
-    report = context.collision.check(t_full, q_full)
+    # The toss part is the same for every serve of a side: checked once, cached.
+    report = context.toss_collision(serve.side, i_sw)
+    if not report.collides:
+        report = context.collision.check(t_full[i_sw:], q_full[i_sw:])
     clock = _lap(timings, "collision", clock)
     if report.collides:
         return failed("collision", f"collision: {report.describe()}", plan=plan, t=t_full, u=u_full, q=q_full, collision=report)

@@ -99,7 +99,6 @@ SolverName = Literal["sqp-daqp", "ipopt"]
 PlanStatus = Literal["ok", "infeasible", "tolerance", "limits", "collision", "failed"]
 
 _INF: Final[float] = 1e30
-_DEBUG = False  # print solver iterations (development aid)
 _ROW_MARGIN: Final[float] = 1e-3
 """Limit rows of the QPs are tightened by this fraction of the limit, so that the 1 kHz
 samples next to a constrained one stay within the true limit."""
@@ -419,6 +418,19 @@ def _free_response(wn: FloatArray, zeta: FloatArray, d: FloatArray) -> FloatArra
     """Transition (..., n, 2, 2) of e'' + 2 zeta wn e' + wn^2 e = 0 over d (..., 1) [s]
     (closed form per damping regime: under-, over- or critically damped)."""
     a = zeta * wn
+    es, ec = _free_response_terms(wn, zeta, d)
+    phi = np.empty(es.shape + (2, 2))
+    phi[..., 0, 0] = ec + a * es
+    phi[..., 0, 1] = es
+    phi[..., 1, 0] = -(wn**2) * es
+    phi[..., 1, 1] = ec - a * es
+    return phi
+
+
+def _free_response_terms(wn: FloatArray, zeta: FloatArray, d: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """(e^{-a d} s(d), e^{-a d} c(d)) (..., n) with a = zeta wn, s = sin(w d)/w, c = cos(w d)
+    (under-damped; sinh/cosh over-damped; series near critical damping), d (..., 1)."""
+    a = zeta * wn
     om = wn * np.sqrt(np.abs(zeta**2 - 1.0))
     shape = np.broadcast_shapes(d.shape, wn.shape)
     s = np.empty(shape)
@@ -439,14 +451,7 @@ def _free_response(wn: FloatArray, zeta: FloatArray, d: FloatArray) -> FloatArra
         s[..., crit] = d * (1.0 + x2 / 6.0)
         c[..., crit] = 1.0 + x2 / 2.0
     ex = np.exp(-a * d)
-    phi = np.empty(shape + (2, 2))
-    es = ex * s
-    ec = ex * c
-    phi[..., 0, 0] = ec + a * es
-    phi[..., 0, 1] = es
-    phi[..., 1, 0] = -(wn**2) * es
-    phi[..., 1, 1] = ec - a * es
-    return phi
+    return ex * s, ex * c
 
 
 @dataclass(frozen=True, eq=False)
@@ -484,16 +489,6 @@ def _build_grid(dyn: JointDynamics, jmax: FloatArray, start: StrikeStart, tau: f
 # ======================================================================================
 # The planner
 # ======================================================================================
-
-
-@dataclass(frozen=True, eq=False)
-class _Errors:
-    p: FloatArray
-    n: FloatArray
-    v: FloatArray
-    ep: float  # position error [m]
-    ang: float  # angle [rad]
-    ev: float  # velocity error [m/s]
 
 
 class StrikePlanner:
@@ -575,13 +570,6 @@ class StrikePlanner:
         self._hess_w[:] = w
         self._hess_trigger()
         return self._hess_out.reshape(16, 16).copy()
-
-    def _errors_np(self, q: FloatArray, qd: FloatArray, target: StrikeTarget) -> _Errors:
-        p, n, v = self._terms(q, qd)[:3]
-        ep = float(np.linalg.norm(p - target.position))
-        ang = float(math.acos(min(1.0, max(-1.0, float(n @ target.normal)))))
-        ev = float(np.linalg.norm(v - target.velocity))
-        return _Errors(p, n, v, ep, ang, ev)
 
     # ---------------------------------------------------------------- public API
     def plan(
@@ -852,11 +840,6 @@ class _Context:
         H = self.pl._lag_hessian(s, w)
         return 0.5 * (H + H.T)
 
-    def full_errors(self, s: FloatArray) -> FloatArray:
-        """Normalised errors (3,): |p - p_tau|/dp, angle/dphi, |v - v_tau|/dv."""
-        e = self.pl._errors_np(s[:8], s[8:], self.target)
-        return np.array([e.ep, e.ang, e.ev]) / self.tol
-
     # ------------------------------------------------------------------ reduced problem
     def reduced_matrices(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """Per-joint min-jerk solution as a function of s.
@@ -1098,8 +1081,6 @@ class _Context:
             key = (float(np.max(np.abs(r))), cost(w, s))
             if best is None or (max(key[0], 0.05) , key[1]) < (max(best[0], 0.05), best[1]):
                 best = (key[0], key[1], w.copy(), s.copy())
-            if _DEBUG:
-                print(f"SQP |r|max={key[0]:.3g} cost={key[1]:.6g} step={step:.3g} dq={info['iterations']}")
             if step < 1e-7 or (step < 1e-3 and key[0] < 1e-2):
                 break
         if best is None:
@@ -1107,28 +1088,6 @@ class _Context:
         return best[2], best[3], qps, ""
 
     # ------------------------------------------------------------------ full problem
-    def limit_rows(self) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Hard limit rows at the segment boundaries: (A (R, 8n), lo (R,), hi (R,)),
-        scaled by the limits."""
-        g, pl, n = self.get_grid(), self.pl, self.n
-        blocks: list[FloatArray] = []
-        los: list[FloatArray] = []
-        his: list[FloatArray] = []
-        # Commands at boundaries 1..n-1, predicted q, q' at 1..n.
-        for comps, ks in (((0, 1, 2), np.arange(1, n)), ((3, 4), np.arange(1, n + 1))):
-            c = np.array(comps)
-            coef = g.T[:, ks][:, :, c]  # (8, K, C, n+1)
-            sc = pl._row_scale[:, c][:, None, :]  # (8, 1, C)
-            blocks.append((coef[..., 1:] / sc[..., None]).reshape(8, -1, n))
-            off = coef[..., 0]
-            los.append(((pl._row_lo[:, c][:, None, :] - off) / sc).reshape(8, -1))
-            his.append(((pl._row_hi[:, c][:, None, :] - off) / sc).reshape(8, -1))
-        coef = np.concatenate(blocks, axis=1)  # (8, R8, n)
-        R8 = coef.shape[1]
-        A = np.zeros((8, R8, 8, n))
-        A[np.arange(8), :, np.arange(8), :] = coef
-        return A.reshape(8 * R8, 8 * n), np.concatenate(los, axis=1).reshape(-1), np.concatenate(his, axis=1).reshape(-1)
-
     def terminal_rows(self) -> tuple[FloatArray, FloatArray]:
         g, n = self.get_grid(), self.n
         coef = g.T[:, n, 0:3, 1:] / self.pl._row_scale[:, 0:3, None]  # (8, 3, n)
@@ -1222,13 +1181,19 @@ class _Context:
         udd = Zk[..., 2] + jk * d
         if commands_only:
             return np.stack([u, ud, udd], axis=-1)
-        c1, c3, c4 = _particular_coefficients(pl.dynamics.wn, pl.dynamics.zeta)
+        wn, zeta = pl.dynamics.wn, pl.dynamics.zeta
+        c1, c3, c4 = _particular_coefficients(wn, zeta)
         e0 = Zk[..., 3] - (Zk[..., 0] - c1 * Zk[..., 1] + c3 * Zk[..., 2] + c4 * jk)
         e0d = Zk[..., 4] - (Zk[..., 1] - c1 * Zk[..., 2] + c3 * jk)
-        phi = _free_response(pl.dynamics.wn, pl.dynamics.zeta, d)  # (N, 8, 2, 2)
-        q = u - c1 * ud + c3 * udd + c4 * jk + phi[..., 0, 0] * e0 + phi[..., 0, 1] * e0d
-        qd = ud - c1 * udd + c3 * jk + phi[..., 1, 0] * e0 + phi[..., 1, 1] * e0d
-        return np.stack([u, ud, udd, q, qd], axis=-1)
+        es, ec = _free_response_terms(wn, zeta, d)  # e^{-a d} s(d), e^{-a d} c(d): (N, 8)
+        a = zeta * wn
+        out = np.empty(u.shape + (5,))
+        out[..., 0] = u
+        out[..., 1] = ud
+        out[..., 2] = udd
+        out[..., 3] = u - c1 * ud + c3 * udd + c4 * jk + (ec + a * es) * e0 + es * e0d
+        out[..., 4] = ud - c1 * udd + c3 * jk - (wn**2) * es * e0 + (ec - a * es) * e0d
+        return out
 
     def sample(self, z: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """The 1 kHz output of jerks z (8, n).
@@ -1477,3 +1442,163 @@ class _Context:
             jerk_cost=jc, solver=res.solver, iterations=res.iterations,
             solve_time_ms=1e3 * (time.perf_counter() - t0),
         )
+
+
+# ======================================================================================
+# Whole serve: preparation + toss + strike (+ return to rest)
+# ======================================================================================
+
+
+@dataclass(frozen=True, eq=False)
+class ServePlan:
+    """One command trajectory at 1 kHz for a whole serve (see :func:`plan_serve`).
+
+    Times on the serve clock: t = 0 at the start of the preparation. Commands follow
+    the planner's convention (``u[k]`` held over [t_k, t_k + dt), the underlying
+    cubic at the interval midpoint); ``q``, ``qd`` are the predicted joint states at t_k.
+    """
+
+    t: FloatArray
+    """Sample times (N,) [s]."""
+    u: FloatArray
+    """Joint commands (N, 8)."""
+    ud: FloatArray
+    """Command velocities (N, 8)."""
+    udd: FloatArray
+    """Command accelerations (N, 8)."""
+    q: FloatArray
+    """Predicted joint positions (N, 8)."""
+    qd: FloatArray
+    """Predicted joint velocities (N, 8)."""
+    t_toss: float
+    """Serve-clock time of the first toss command [s]."""
+    t_switch: float
+    """Serve-clock time at which the strike takes over [s]."""
+    t_contact: float
+    """Serve-clock contact time (strike tau) [s]."""
+    strike: Plan
+    """The strike plan (status, reason, errors at tau, ...)."""
+    max_preparation_tilt: float
+    """Largest angle [rad] of the racket normal from +Z during the preparation (the
+    preparation is a joint-space motion: the ball only stays in the cup if this is
+    small; see :func:`plan_serve`)."""
+
+    @property
+    def ok(self) -> bool:
+        """True when the strike plan is valid."""
+        return self.strike.ok
+
+
+def _rest_to_rest(q0: FloatArray, q1: FloatArray, limits: JointLimits, dt: float) -> tuple[FloatArray, ...]:
+    """Quintic minimum-jerk rest-to-rest joint motion, duration chosen from the limits
+    (peak |u'| = 1.875 D/T, |u''| = 5.774 D/T^2, |u'''| = 60 D/T^3 for a distance D),
+    rounded up to dt. Returns (T, u, ud, udd) sampled at the interval midpoints."""
+    D = np.abs(q1 - q0)
+    T = float(np.max(np.concatenate([
+        1.875 * D / limits.velocity, np.sqrt(5.774 * D / limits.acceleration), np.cbrt(60.0 * D / limits.jerk), [dt],
+    ])))
+    T = math.ceil(T / dt) * dt
+    n = int(round(T / dt))
+    s = (np.arange(n) + 0.5) * dt / T
+    p = 10 * s**3 - 15 * s**4 + 6 * s**5
+    pd = (30 * s**2 - 60 * s**3 + 30 * s**4) / T
+    pdd = (60 * s - 180 * s**2 + 120 * s**3) / T**2
+    d = (q1 - q0)[None]
+    return T, q0[None] + p[:, None] * d, pd[:, None] * d, pdd[:, None] * d
+
+
+def start_from_toss(toss: object, t_switch: float) -> tuple[StrikeStart, int]:
+    """Strike start state at the toss sample k at or before ``t_switch`` (toss clock):
+    the predicted joint state ``toss.X[k]`` (at t_k) and the command state moved from
+    the sample's interval midpoint (the commands' convention, see :class:`Plan`) back
+    to t_k with the toss's jerk. Returns (start, k); the strike's first command then
+    continues ``toss.u[:k]`` seamlessly."""
+    k = int(toss.index_at(t_switch))  # type: ignore[attr-defined]
+    tu, tud, tudd, tuddd, tX = (np.asarray(getattr(toss, f)) for f in ("u", "ud", "udd", "uddd", "X"))
+    h = 0.5 * float(getattr(toss, "dt", COMMAND_DT))
+    u0 = tu[k] - tud[k] * h + tudd[k] * h**2 / 2 - tuddd[k] * h**3 / 6
+    ud0 = tud[k] - tudd[k] * h + tuddd[k] * h**2 / 2
+    udd0 = tudd[k] - tuddd[k] * h
+    return StrikeStart(u=u0, ud=ud0, udd=udd0, X=tX[k]), k
+
+
+def plan_serve(
+    planner: StrikePlanner,
+    toss: object,
+    target: StrikeTarget,
+    *,
+    t_switch: float,
+    q_start: npt.ArrayLike | None = None,
+    settle: float = 0.3,
+    warm_start: Plan | None = None,
+) -> ServePlan:
+    """Plan a whole serve as one 1 kHz command trajectory, continuous up to acceleration:
+
+    1. preparation: rest-to-rest quintic in joint space from ``q_start`` (default: the
+       robot's ``q_flat``, e.g. the pose at the ball feeder) to the toss's first command,
+       then ``settle`` seconds of hold so the joints are at rest when the toss starts
+       (its predicted states assume so). It does not constrain the racket tilt: the
+       reported ``max_preparation_tilt`` tells whether the ball would stay in the cup;
+    2. the toss commands ``toss.u`` up to the switch sample (``toss.index_at(t_switch)``);
+    3. the strike from the toss's command and predicted joint state at the switch
+       (the command state is moved from the sample's midpoint back to the sample time
+       with the toss's jerk), ending at rest at ``target.u_rest`` (return to rest).
+
+    Args:
+        planner: the strike planner.
+        toss: a :class:`studio.toss.TossPrimitive` (t, u, ud, udd, uddd, X, dt, index_at).
+        target: strike target with tau, tau_f on the *strike* clock (from the switch).
+        t_switch: switch time on the toss clock [s].
+        q_start: preparation start (8,) (default ``robot.q_flat``).
+        settle: hold before the toss [s].
+        warm_start: previous strike plan to seed the planner.
+
+    Returns:
+        The :class:`ServePlan` (check ``.ok`` / ``.strike.reason``).
+
+    Raises:
+        InvalidInputError: bad inputs (non-finite, wrong shapes, switch outside the toss).
+    """
+    robot = planner.robot
+    dt = planner.options.dt
+    if abs(getattr(toss, "dt", dt) - dt) > 1e-12:
+        raise InvalidInputError(f"plan_serve: toss dt {getattr(toss, 'dt', None)} differs from the planner's {dt}")
+    if not (math.isfinite(t_switch) and 0.0 <= t_switch < float(toss.t[-1])):  # type: ignore[attr-defined]
+        raise InvalidInputError(f"plan_serve: t_switch = {t_switch} s outside the toss [0, {float(toss.t[-1])}]")  # type: ignore[attr-defined]
+    if not (math.isfinite(settle) and settle >= 0.0):
+        raise InvalidInputError(f"plan_serve: settle must be >= 0 s, got {settle}")
+    q0 = _vec(robot.q_flat if q_start is None else q_start, (8,), "plan_serve q_start")
+    tu, tud, tudd, tX = (np.asarray(getattr(toss, f)) for f in ("u", "ud", "udd", "X"))
+    start, k = start_from_toss(toss, t_switch)
+    # 1. Preparation and hold.
+    T_p, pu, pud, pudd = _rest_to_rest(q0, tu[0], planner.limits, dt)
+    n_hold = int(round(settle / dt))
+    pu = np.vstack([pu, np.repeat(tu[:1], n_hold, axis=0)])
+    pud = np.vstack([pud, np.zeros((n_hold, 8))])
+    pudd = np.vstack([pudd, np.zeros((n_hold, 8))])
+    X_prep = robot.dynamics.simulate(pu, dt, np.stack([q0, np.zeros(8)], axis=1))
+    n_p = pu.shape[0]
+    # 3. Strike from the toss state at sample k (command state moved to t_k).
+    strike = planner.plan(start, target, warm_start=warm_start)
+    t_toss = n_p * dt
+    t_sw = t_toss + k * dt
+    if strike.u.shape[0] == 0:
+        su = sud = sudd = sq = sqd = np.zeros((0, 8))
+    else:
+        su, sud, sudd, sq, sqd = strike.u, strike.ud, strike.udd, strike.q, strike.qd
+    u = np.vstack([pu, tu[:k], su])
+    n = u.shape[0]
+    tilt = [math.acos(float(np.clip(robot.fk(qq).normal[2], -1.0, 1.0))) for qq in X_prep[::10, :, 0]]
+    return ServePlan(
+        t=np.arange(n) * dt,
+        u=u,
+        ud=np.vstack([pud, tud[:k], sud]),
+        udd=np.vstack([pudd, tudd[:k], sudd]),
+        q=np.vstack([X_prep[:, :, 0], tX[:k, :, 0], sq]),
+        qd=np.vstack([X_prep[:, :, 1], tX[:k, :, 1], sqd]),
+        t_toss=t_toss,
+        t_switch=t_sw,
+        t_contact=t_sw + target.tau,
+        strike=strike,
+        max_preparation_tilt=max(tilt) if tilt else 0.0,
+    )
