@@ -282,7 +282,7 @@ class FlightModel:
             + self.mass * self.gravity * p[..., 2]
         )
 
-    def _scalar_derivative(self) -> Callable[[Sequence[float]], list[float]]:
+    def scalar_derivative(self) -> Callable[[Sequence[float]], list[float]]:
         """Fast derivative of the 9-state ``[p, v, w]`` on Python floats (same equations
         as :meth:`acceleration` / :meth:`spin_derivative`; the tests compare them)."""
         k = self.k_air
@@ -1110,6 +1110,27 @@ def _first_crossing(g: Callable[[float], float], n_sub: int, refine: float) -> f
     return brentq(g, a, th_min, xtol=1e-14, maxiter=200)
 
 
+def rk4_step(
+    deriv: Callable[[Sequence[float]], list[float]], y: list[float], f: list[float], h: float
+) -> tuple[list[float], list[float]]:
+    """One classic RK4 step of the 9-state ball ODE on plain floats (fast for scalars).
+
+    Args:
+        deriv: the flight equations (:meth:`FlightModel.scalar_derivative`).
+        y: state [p, v, w] (9,) at the step start; f: deriv(y).
+        h: step [s].
+
+    Returns:
+        (y1, f1): the state after the step and its derivative (for Hermite dense output).
+    """
+    k2 = deriv([y[i] + 0.5 * h * f[i] for i in range(9)])
+    k3 = deriv([y[i] + 0.5 * h * k2[i] for i in range(9)])
+    k4 = deriv([y[i] + h * k3[i] for i in range(9)])
+    h6 = h / 6.0
+    y1 = [y[i] + h6 * (f[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]) for i in range(9)]
+    return y1, deriv(y1)
+
+
 def simulate(
     state: BallState,
     t_max: float,
@@ -1182,7 +1203,7 @@ def simulate(
     if racket is not None and racket_model is None:
         racket_model = RacketModel.default()
 
-    deriv = flight._scalar_derivative()
+    deriv = flight.scalar_derivative()
     r = flight.radius
     floor_z = court.floor_z
     obstacles = [_Obstacle(b.name, b.kind, b.center, b.half_size) for b in court.boxes()]
@@ -1225,15 +1246,7 @@ def simulate(
         h = min(max_step, t_stop - t)
         if t_stop - (t + h) < 1e-9:
             h = t_stop - t
-        # --- RK4 step ------------------------------------------------------------------
-        k1 = f
-        hh = 0.5 * h
-        k2 = deriv([y[i] + hh * k1[i] for i in range(9)])
-        k3 = deriv([y[i] + hh * k2[i] for i in range(9)])
-        k4 = deriv([y[i] + h * k3[i] for i in range(9)])
-        h6 = h / 6.0
-        y1 = [y[i] + h6 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]) for i in range(9)]
-        f1 = deriv(y1)
+        y1, f1 = rk4_step(deriv, y, f, h)
         ya, fa = y, f
 
         def pos(theta: float, _ya: list[float] = ya, _fa: list[float] = fa, _y1: list[float] = y1,

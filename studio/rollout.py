@@ -68,6 +68,7 @@ from studio.ball import (
     NetModel,
     RacketModel,
     TableBounceModel,
+    rk4_step,
 )
 from studio.court import DEFAULT_COURT, Box, Court
 from studio.errors import InvalidInputError, RobotModelError
@@ -838,7 +839,7 @@ def rollout(
     rearm = opts.rearm_distance
     sink = opts.sink_depth
     geom_distance = mujoco.mj_geomDistance
-    deriv = flight._scalar_derivative()  # the flight equations of studio.ball, on floats
+    deriv = flight.scalar_derivative()  # the flight equations of studio.ball, on floats
 
     # --- start: ball in the cup or given ---------------------------------------------
     release: Release | None = None
@@ -989,14 +990,7 @@ def rollout(
         h = min(opts.max_step, t_stop - t_cur)
         if t_stop - (t_cur + h) < 1e-9:
             h = t_stop - t_cur
-        k1 = f
-        hh = 0.5 * h
-        k2 = deriv([y[i] + hh * k1[i] for i in range(9)])
-        k3 = deriv([y[i] + hh * k2[i] for i in range(9)])
-        k4 = deriv([y[i] + h * k3[i] for i in range(9)])
-        h6 = h / 6.0
-        y1 = [y[i] + h6 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i]) for i in range(9)]
-        f1 = deriv(y1)
+        y1, f1 = rk4_step(deriv, y, f, h)
         hit = search(t_cur, h, y, f, y1, f1)
         if hit is None:
             pieces.append((t_cur, t_cur + h, y, f, y1, f1))

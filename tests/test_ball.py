@@ -34,7 +34,7 @@ def test_scalar_derivative_matches_vectorized_acceleration() -> None:
     w = rng.normal(0, 300, (20, 3))
     a = fm.acceleration(np.zeros((20, 3)), v, w)
     wd = fm.spin_derivative(v, w)
-    deriv = fm._scalar_derivative()
+    deriv = fm.scalar_derivative()
     for i in range(20):
         d = deriv([0.0, 0.0, 0.0, *v[i], *w[i]])
         np.testing.assert_allclose(d[3:6], a[i], rtol=1e-12, atol=1e-12)
@@ -62,7 +62,7 @@ def test_rk4_matches_tight_dop853_reference() -> None:
     s = B.BallState([-1.3, 0.1, 0.5], [6.0, -0.5, 1.0], [20.0, 250.0, -150.0])
     traj = B.simulate(s, 0.25, stop_on_floor=False)
     assert not traj.events
-    deriv = fm._scalar_derivative()
+    deriv = fm.scalar_derivative()
     ref = solve_ivp(lambda t, y: deriv(y), (0.0, 0.25), s.as_vector(), method="DOP853", rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(traj.p[-1], ref.y[:3, -1], atol=1e-7)
     np.testing.assert_allclose(traj.v[-1], ref.y[3:6, -1], atol=1e-6)
