@@ -160,25 +160,41 @@ class BallMetrics:
 
 
 @dataclass(frozen=True)
-class Evaluation:
-    """Everything one serve evaluation produced."""
+class ServeMotion:
+    """The planned robot motion of a serve (independent of which toss sample is used)."""
 
     serve: HandServe
-    """The serve evaluated."""
+    """The serve planned."""
+    target: RacketTarget
+    """Racket target at tau."""
+    plan: Any | None
+    """The strike plan (None if planning was not reached)."""
+    t: npt.NDArray[np.float64] | None
+    """Full-serve command times (M,) [s] (toss then strike), 1 kHz."""
+    u: npt.NDArray[np.float64] | None
+    """Joint commands (M, 8)."""
+    q: npt.NDArray[np.float64] | None
+    """Predicted joint positions (M, 8)."""
+    collision: Any | None
+    """Collision report of the whole motion."""
+    failure: tuple[Status, str] | None
+    """(status, reason) when the motion is not usable, else None."""
+    racket: SampledRacketMotion | None
+    """Racket motion around the strike, for the ball predictor."""
+    timings_ms: dict[str, float]
+    """Wall time per stage [ms]."""
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Everything one serve evaluation produced (on one toss)."""
+
+    motion: ServeMotion
+    """The planned robot motion (serve, target, plan, commands, collision report)."""
     status: Status
     """Overall verdict."""
     reason: str
     """One-line explanation of the verdict."""
-    target: RacketTarget
-    """Racket target at tau."""
-    plan: Any | None
-    """The planner's result (None if planning was not reached)."""
-    t: npt.NDArray[np.float64] | None
-    """Full-serve command times (M,) [s] at 1 kHz (toss then strike)."""
-    u: npt.NDArray[np.float64] | None
-    """Full-serve joint commands (M, 8)."""
-    q: npt.NDArray[np.float64] | None
-    """Predicted joint positions (M, 8)."""
     ball: Trajectory | None
     """Predicted ball path after lift (analytic predictor)."""
     toss_t: npt.NDArray[np.float64]
@@ -193,10 +209,36 @@ class Evaluation:
     """Reward F and its terms."""
     metrics: BallMetrics | None
     """Ball state summaries."""
-    collision: Any | None
-    """Collision report of the plan."""
     timings_ms: dict[str, float]
     """Wall time per stage [ms]."""
+
+    @property
+    def serve(self) -> HandServe:
+        return self.motion.serve
+
+    @property
+    def target(self) -> RacketTarget:
+        return self.motion.target
+
+    @property
+    def plan(self) -> Any | None:
+        return self.motion.plan
+
+    @property
+    def t(self) -> npt.NDArray[np.float64] | None:
+        return self.motion.t
+
+    @property
+    def u(self) -> npt.NDArray[np.float64] | None:
+        return self.motion.u
+
+    @property
+    def q(self) -> npt.NDArray[np.float64] | None:
+        return self.motion.q
+
+    @property
+    def collision(self) -> Any | None:
+        return self.motion.collision
 
     @property
     def legal(self) -> bool:
@@ -303,17 +345,15 @@ def strike_target(serve: HandServe, toss: TossModel) -> RacketTarget:
     return RacketTarget(tuple(_vec(pos)), tuple(_vec(p.normal)), tuple(_vec(p.velocity)))  # type: ignore[arg-type]
 
 
-def _failure(serve: HandServe, status: Status, reason: str, target: RacketTarget, toss: TossModel, timings: dict[str, float], **kw: Any) -> Evaluation:
+def _failure(motion: ServeMotion, toss: TossModel, timings: dict[str, float]) -> Evaluation:
+    """The evaluation of a motion that could not be planned or is unsafe: P_MPC, no ball."""
+    assert motion.failure is not None
+    status, reason = motion.failure
     lift = toss.t <= toss.t_lift
     return Evaluation(
-        serve=serve,
+        motion=motion,
         status=status,
         reason=reason,
-        target=target,
-        plan=kw.get("plan"),
-        t=kw.get("t"),
-        u=kw.get("u"),
-        q=kw.get("q"),
         ball=None,
         toss_t=toss.t[lift],
         toss_p=toss.p[lift],
@@ -321,35 +361,8 @@ def _failure(serve: HandServe, status: Status, reason: str, target: RacketTarget
         legality=None,
         reward=RewardTerms(s_leg=PLANNER_FAILURE_PENALTY),
         metrics=None,
-        collision=kw.get("collision"),
         timings_ms=timings,
     )
-
-
-@dataclass(frozen=True)
-class ServeMotion:
-    """The planned robot motion of a serve (independent of which toss sample is used)."""
-
-    serve: HandServe
-    """The serve planned."""
-    target: RacketTarget
-    """Racket target at tau."""
-    plan: Any | None
-    """The strike plan (None if planning was not reached)."""
-    t: npt.NDArray[np.float64] | None
-    """Full-serve command times (M,) [s] (toss then strike), 1 kHz."""
-    u: npt.NDArray[np.float64] | None
-    """Joint commands (M, 8)."""
-    q: npt.NDArray[np.float64] | None
-    """Predicted joint positions (M, 8)."""
-    collision: Any | None
-    """Collision report of the whole motion."""
-    failure: tuple[Status, str] | None
-    """(status, reason) when the motion is not usable, else None."""
-    racket: SampledRacketMotion | None
-    """Racket motion around the strike, for the ball predictor."""
-    timings_ms: dict[str, float]
-    """Wall time per stage [ms]."""
 
 
 def _lap(timings: dict[str, float], name: str, since: float) -> float:
@@ -431,8 +444,7 @@ def evaluate_motion(
     if toss_sample is not None and not (0 <= toss_sample < toss.n_tosses):
         raise InvalidInputError(f"toss sample {toss_sample} out of range: the {serve.side} toss has {toss.n_tosses} recordings")
     if motion.failure is not None:
-        status, reason = motion.failure
-        return _failure(serve, status, reason, motion.target, toss, timings, plan=motion.plan, t=motion.t, u=motion.u, q=motion.q, collision=motion.collision)
+        return _failure(motion, toss, timings)
     assert motion.t is not None and motion.q is not None and motion.racket is not None
     p = serve.params
     t_full, q_full = motion.t, motion.q
@@ -486,14 +498,9 @@ def evaluate_motion(
     reason = "legal serve" if failure is None else f"{failure.label}: {failure.detail}"
     lift = toss.t <= toss.t_lift
     return Evaluation(
-        serve=serve,
+        motion=motion,
         status=status,
         reason=reason,
-        target=motion.target,
-        plan=motion.plan,
-        t=t_full,
-        u=motion.u,
-        q=q_full,
         ball=ball,
         toss_t=toss.t[lift],
         toss_p=toss.p[lift],
@@ -501,7 +508,6 @@ def evaluate_motion(
         legality=legality,
         reward=terms,
         metrics=metrics,
-        collision=motion.collision,
         timings_ms=timings,
     )
 
