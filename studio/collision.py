@@ -46,6 +46,11 @@ from studio.robot import Robot
 
 FloatArray = npt.NDArray[np.float64]
 
+_DISTANCE_MARGIN = 1e-4
+"""Distance [m] below which conservative advancement stops skipping a pair and asks coal's
+collision test at every sample: covers the tolerance of coal's GJK distance (~1e-6 m) and
+rounding with a wide margin (engineering choice)."""
+
 
 @dataclass(frozen=True, slots=True)
 class CollisionReport:
@@ -211,6 +216,12 @@ class CollisionChecker:
         self._j_r = np.array(jr)
         jpos = {j: i for i, j in enumerate(self._joints)}
         self._g_jpos = np.array([jpos[j] for j in self._g_joint.tolist()], dtype=int)
+        # Conservative advancement: frames carrying geometry (world first) and pair members.
+        self._frames = sorted({0, *self._g_joint.tolist()})
+        fpos = {j: i for i, j in enumerate(self._frames)}
+        self._g_frame = np.array([fpos[j] for j in self._g_joint.tolist()], dtype=int)
+        self._pair_a = np.array([i for i, _ in self._pairs], dtype=int)
+        self._pair_b = np.array([j if j < n_robot else -1 for _, j in self._pairs], dtype=int)
         groups: dict[tuple[int, int], list[int]] = {}
         for row, (a, b) in enumerate(self._rr.tolist()):
             ja, jb = self._g_jpos[a], self._g_jpos[b]
@@ -328,12 +339,15 @@ class CollisionChecker:
             raise InvalidInputError(f"{what}: not finite")
         return arr
 
-    def check(self, t: npt.ArrayLike, q: npt.ArrayLike) -> CollisionReport:
+    def check(self, t: npt.ArrayLike, q: npt.ArrayLike, *, exhaustive: bool = False) -> CollisionReport:
         """Check a joint trajectory (predicted joint positions).
 
         Args:
             t: sample times (N,) [s].
             q: joint positions (N, 8) [m | rad].
+            exhaustive: check every (stride-th) sample's broad-phase candidates with coal
+                instead of conservative advancement (same result, slower; the reference
+                the fast path is tested against).
 
         Returns:
             The :class:`CollisionReport` (first collision in time, if any).
@@ -355,6 +369,16 @@ class CollisionChecker:
             idx = np.append(idx, N - 1)
         if N == 0:
             return CollisionReport(False, None, None, (), 0)
+        if exhaustive:
+            return self._check_exhaustive(tt, qq, idx)
+        return self._check_advancing(tt, qq, idx)
+
+    def _report(self, tt: FloatArray, i: int, hits: list[int], checked: int) -> CollisionReport:
+        names = tuple((self.names[self._pairs[k][0]], self.names[self._pairs[k][1]]) for k in sorted(set(hits)))
+        return CollisionReport(True, float(tt[i]), i, names, checked)
+
+    def _check_exhaustive(self, tt: FloatArray, qq: FloatArray, idx: npt.NDArray[np.int64]) -> CollisionReport:
+        """Broad phase at every checked sample, coal on the candidates (reference path)."""
         cand = self._candidates(qq[idx])
         model, data, gm, gd = self.robot.model, self.data, self.geom_model, self.geom_data
         for c in sorted(cand):
@@ -362,10 +386,93 @@ class CollisionChecker:
             pin.updateGeometryPlacements(model, data, gm, gd, qq[i])
             hits = [int(k) for k in cand[c] if pin.computeCollision(gm, gd, int(k))]
             if hits:
-                names = tuple((self.names[self._pairs[k][0]], self.names[self._pairs[k][1]]) for k in sorted(set(hits)))
-                return CollisionReport(True, float(tt[i]), i, names, int(idx.size))
+                return self._report(tt, i, hits, int(idx.size))
         return CollisionReport(False, None, None, (), int(idx.size))
 
+    def _check_advancing(self, tt: FloatArray, qq: FloatArray, idx: npt.NDArray[np.int64]) -> CollisionReport:
+        """Conservative advancement over the checked samples (see :meth:`_motion_bounds`).
+
+        Each pair is measured with coal's distance d at some sample s; the samples s' after
+        it whose accumulated motion bound B(s, s') stays below d - margin cannot be in
+        contact for that pair and are skipped; the pair is measured again at the first
+        sample where the bound reaches d - margin. Pairs closer than the margin are
+        checked with coal's collision test (the exhaustive path's test) at that sample.
+        The first sample where some pair collides is reported with every pair coal finds
+        colliding there, so the result equals the exhaustive check's."""
+        model, data, gm, gd = self.robot.model, self.data, self.geom_model, self.geom_data
+        S = idx.size
+        qs = qq[idx]
+        cum = self._motion_bounds(qs)  # (P, S)
+        n_pairs = len(self._pairs)
+        buckets: list[list[int]] = [[] for _ in range(S + 1)]
+        buckets[0] = list(range(n_pairs))
+        margin = _DISTANCE_MARGIN
+        for s in range(S):
+            due = buckets[s]
+            if not due:
+                continue
+            buckets[s] = []
+            i = int(idx[s])
+            pin.updateGeometryPlacements(model, data, gm, gd, qs[s])
+            collided = False
+            for k in due:
+                d = float(pin.computeDistance(gm, gd, k).min_distance)
+                if d <= margin:
+                    if pin.computeCollision(gm, gd, k):
+                        collided = True
+                        break
+                    nxt = s + 1
+                else:
+                    row = cum[k]
+                    nxt = int(np.searchsorted(row, row[s] + (d - margin), side="left"))
+                    if nxt <= s:
+                        nxt = s + 1
+                buckets[min(nxt, S)].append(k)
+            if collided:
+                hits = [k for k in range(n_pairs) if pin.computeCollision(gm, gd, k)]
+                return self._report(tt, i, hits, int(S))
+        return CollisionReport(False, None, None, (), int(S))
+
+    def _motion_bounds(self, qs: FloatArray) -> FloatArray:
+        """Accumulated bounds B (P, S) on how much each pair's distance can shrink, samples (S, 8).
+
+        For a pair (a, b) and samples s < s', the distance at s' is at least
+        d(s) - (B[s'] - B[s]). Per step s -> s+1 the bound is the largest displacement of
+        a point of one geometry seen from the other geometry's joint frame (distances are
+        frame-invariant): a geometry with bounding sphere (centre c, radius rho) moving from
+        (c, R) to (c', R') in that frame moves its points by at most
+        |c' - c| + rho * ||R' - R||_2, with ||R' - R||_2 = ||R' - R||_F / sqrt(2) for
+        rotations (exact: two singular values 2 sin(theta/2), one zero). The smaller
+        of the two frames' bounds is used per step; court geometries are static in the world
+        frame (joint 0). This bounds the distance change between the samples themselves
+        (the exhaustive check also looks only at samples), whatever the path in between."""
+        P, R = self._fk(qs)  # (S, nj, 3), (S, nj, 3, 3)
+        S = qs.shape[0]
+        if S < 2:
+            return np.zeros((len(self._pairs), max(S, 1)))
+        J = np.array(self._frames, dtype=int)  # joint frames that carry geometry (incl. 0)
+        PJ, RJ = P[:, J], R[:, J]  # (S, F, 3), (S, F, 3, 3)
+        C = P[:, self._g_joint] + np.einsum("sgab,gb->sga", R[:, self._g_joint], self._g_p)  # (S, G, 3)
+        # Centres of every robot geometry in every frame: X[s, f, g] = R_f^T (C_g - P_f).
+        F, G = len(J), C.shape[1]
+        RJt = RJ.transpose(0, 1, 3, 2).reshape(S, 3 * F, 3)  # rows (f, a): R_f^T
+        X = (RJt @ C.transpose(0, 2, 1)).reshape(S, F, 3, G)  # R_f^T C_g
+        X -= np.sum(RJ * PJ[:, :, :, None], axis=2)[..., None]  # ... - R_f^T P_f
+        dX = np.sqrt(np.sum(np.square(X[1:] - X[:-1]), axis=2))  # (S-1, F, G)
+        Rrel = (RJt @ RJ.transpose(0, 2, 1, 3).reshape(S, 3, 3 * F)).reshape(S, F, 3, F, 3)  # R_f^T R_h
+        dR = np.sqrt(np.sum(np.square(Rrel[1:] - Rrel[:-1]), axis=(2, 4)) * 0.5)  # (S-1, F, F)
+        gf = self._g_frame  # frame index of each robot geometry
+        step = dX + dR[:, :, gf] * self._radii[None, None, :]  # (S-1, F, G): geometry g seen from frame f
+        a, b = self._pair_a, self._pair_b  # robot geometry of each pair; b = -1 for court geometries
+        env = b < 0
+        fa = gf[a]
+        fb = np.where(env, 0, gf[np.maximum(b, 0)])
+        pair_step = step[:, fb, a]  # a seen from b's frame (world for the court)
+        rr = ~env
+        pair_step[:, rr] = np.minimum(pair_step[:, rr], step[:, fa[rr], b[rr]])
+        out = np.zeros((len(self._pairs), S))
+        np.cumsum(pair_step.T, axis=1, out=out[:, 1:])
+        return out
 
 class _BatchJointFK:
     """World placements of all joint frames (pinocchio ``oMi``) for many
