@@ -53,6 +53,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0 if payload["legal"] else 1
 
 
+def _cmd_dashboard(args: argparse.Namespace) -> int:
+    from studio.dashboard import run_dashboard
+
+    run_dashboard(library_dir=args.library, host=args.host, port=args.port, studio_url=args.studio_url)
+    return 0
+
+
 def _cmd_toss(args: argparse.Namespace) -> int:
     from studio.toss import toss_report
 
@@ -87,6 +94,13 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     p.add_argument("--export", default=None, metavar="DIR", help="write the plan to the serve library folder DIR")
     handlers["evaluate"] = _cmd_evaluate
+
+    p = sub.add_parser("dashboard", help="serve the Panel dashboard of a serve library")
+    p.add_argument("--library", default="serve-library", help="serve library folder (default ./serve-library)")
+    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default: localhost only)")
+    p.add_argument("--port", type=int, default=5006)
+    p.add_argument("--studio-url", default="http://127.0.0.1:8080", help="link to the studio shown beside each serve")
+    handlers["dashboard"] = _cmd_dashboard
 
     p = sub.add_parser("toss", help="analyse toss recordings: lift time, rise, spread")
     p.add_argument("--side", choices=("right", "left"), default="right")

@@ -1,0 +1,210 @@
+"""Panel dashboard over a serve library: clustering, layout on real/empty/corrupt libraries,
+serve JSON download, and the dashboard in a real browser (Debian chromium, headless)."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from studio.dashboard import SCATTER_AXES, LibraryDashboard, build_dashboard, entry_cluster, filter_table, spin_cluster
+from studio.library import INDEX_NAME, ServeLibrary
+from studio.serve import serve_from_json
+
+ROOT = Path(__file__).resolve().parent.parent
+SERVES = ROOT / "examples" / "serves"
+NOTEBOOK = ROOT / "examples" / "inspect_library.ipynb"
+ARTIFACTS = ROOT / "test-artifacts"
+CHROMIUM = "/usr/bin/chromium"
+NAMES = ("backspin_right", "topspin_right", "sidespin_right")
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A library of three evaluated example serves (right toss)."""
+    from studio.evaluate import EvaluationContext, evaluate_serve
+    from studio.serve import load_serve
+
+    folder = tmp_path_factory.mktemp("library")
+    context = EvaluationContext.default()
+    lib = ServeLibrary(folder)
+    for name in NAMES:
+        serve = load_serve(SERVES / f"{name}.json")
+        ev = evaluate_serve(serve, context, task=serve.task or "topspin_velocity")
+        lib.add(ev, provenance={"kind": "hand-designed", "file": f"{name}.json"}, task=serve.task)
+    return folder
+
+
+def test_spin_cluster_by_dominant_component() -> None:
+    assert spin_cluster(200.0, 20.0) == "topspin"
+    assert spin_cluster(-150.0, 30.0, 10.0) == "backspin"
+    assert spin_cluster(10.0, -120.0) == "sidespin"
+    assert spin_cluster(60.0, 60.0) == "mixed"  # both at 0.71 |w| < 0.8 |w|
+    assert spin_cluster(0.0, 0.0, 100.0) == "mixed"  # pure cork: neither top/back nor side
+    assert spin_cluster(5.0, -3.0) == "no spin"  # |w| = 5.8 rad/s < 10 rad/s
+    assert spin_cluster(float("nan"), 1.0) == "no net crossing"
+    # the threshold: 0.8 |w| exactly is dominant, just below is not
+    assert spin_cluster(80.0, 60.0) == "topspin"
+    assert spin_cluster(79.0, 61.3) == "mixed"
+    assert spin_cluster(80.0, 60.0, dominance=0.9) == "mixed"
+    assert entry_cluster({"net": None}) == "no net crossing"
+    assert entry_cluster({"net": {"v": [3.0, 0, 0], "w": [0, -90.0, 0], "topspin": -90.0, "sidespin": 0.0, "cork": 0.0}}) == "backspin"
+    assert entry_cluster({"net": {"v": "broken"}}) == "no net crossing"  # malformed net state: shown, not raised
+
+
+def test_dashboard_on_a_library_of_three_serves(library: Path) -> None:
+    dash = LibraryDashboard(library, studio_url="http://127.0.0.1:8080")
+    assert dash.error is None and dash.status.alert_type == "info" and "3 serves" in dash.status.object
+    table = dash.table
+    assert sorted(table["name"]) == sorted(n.replace("_", " ") for n in NAMES)
+    assert list(dash.tabulator.value["id"]) == list(table["id"])
+    # backspin serve: negative topspin at the net, clustered as backspin; horizontal speed <= speed
+    back = table[table["name"] == "backspin right"].iloc[0]
+    assert back["topspin"] < -50 and back["cluster"] == "backspin"
+    entry = ServeLibrary(library).get(back["id"])
+    v = np.asarray(entry.data["net"]["v"])
+    assert back["speed_h"] == pytest.approx(np.hypot(v[0], v[1])) and back["speed_h"] <= entry.data["net"]["speed"]
+    assert back["spin"] == pytest.approx(np.linalg.norm(entry.data["net"]["w"]))
+    # the first row is shown: 8 joint command lines, ball path views, studio link, download
+    assert dash.selected_id == table["id"].iloc[0]
+    lines = [r for r in dash.joints.object.renderers if type(r.glyph).__name__ == "Line"]
+    assert len(lines) == 8
+    assert dash.top_view.object is not None and dash.side_view.object is not None
+    assert "http://127.0.0.1:8080" in dash.studio_link.object
+    assert not dash.download.disabled and dash.download.filename == f"{dash.selected_id}.json"
+    served = serve_from_json(json.loads(dash._serve_json().getvalue()))
+    assert served.params == ServeLibrary(library).get(dash.selected_id).serve.params
+    # the scatter: one glyph per cluster present, both axis choices
+    assert dash.scatter.object.xaxis[0].axis_label.startswith("horizontal speed")
+    dash.axes.value = SCATTER_AXES[1]
+    assert dash.scatter.object.xaxis[0].axis_label.startswith("topspin")
+    legend = sorted(item.label["value"] for item in dash.scatter.object.legend[0].items)
+    assert legend == sorted(set(table["cluster"]))
+    # selecting another row switches the detail view
+    dash.tabulator.selection = [2]
+    assert dash.selected_id == table["id"].iloc[2]
+    assert str(table["name"].iloc[2]) in dash.detail_title.object
+    # filters
+    dash.cluster.value = "backspin"
+    assert list(dash.tabulator.value["name"]) == ["backspin right"] and dash.selected_id == back["id"]
+    dash.cluster.value = "all"
+    dash.legal.value = "illegal"
+    assert len(dash.tabulator.value) == 0 and dash.selected_id is None and dash.download.disabled
+    dash.legal.value = "legal"
+    assert len(dash.tabulator.value) == int(table["legal"].sum())
+    assert len(filter_table(table, side="left")) == 0 and len(filter_table(table, side="right")) == 3
+    assert len(filter_table(table, task="backspin")) == 1
+    # the whole layout turns into Bokeh models (what a browser or a notebook renders)
+    layout = build_dashboard(library)
+    assert layout.get_root() is not None
+
+
+def test_missing_and_empty_library_show_a_message(tmp_path: Path) -> None:
+    dash = LibraryDashboard(tmp_path / "nowhere")
+    assert dash.status.visible and dash.status.alert_type == "warning" and "no index.json" in dash.status.object
+    assert len(dash.tabulator.value) == 0 and dash.selected_id is None
+    assert dash.layout.get_root() is not None
+    (tmp_path / INDEX_NAME).write_text(json.dumps({"schema": "serve-studio/library@1", "serves": []}))
+    dash = LibraryDashboard(tmp_path)
+    assert "holds no serves" in dash.status.object
+
+
+def test_corrupt_files_show_an_error_naming_the_file(library: Path, tmp_path: Path) -> None:
+    import shutil
+
+    folder = tmp_path / "lib"
+    shutil.copytree(library, folder)
+    index = folder / INDEX_NAME
+    good = index.read_text()
+    index.write_text(good[:200])  # truncated JSON
+    dash = LibraryDashboard(folder)
+    assert dash.error is not None and dash.status.visible and dash.status.alert_type == "danger"
+    assert "index.json" in dash.status.object and "not valid JSON" in dash.status.object
+    assert len(dash.tabulator.value) == 0
+    assert dash.layout.get_root() is not None
+    # a wrong field is named too
+    doc = json.loads(good)
+    doc["serves"][1]["reward"] = "high"
+    index.write_text(json.dumps(doc))
+    dash.reload_button.clicks += 1  # the reload button re-reads the folder
+    assert "serves[1].reward" in dash.status.object
+    # repaired: reload recovers
+    index.write_text(good)
+    dash.reload_button.clicks += 1
+    assert dash.error is None and len(dash.tabulator.value) == 3
+    # a corrupt arrays file: the serve's view shows the error, the table stays
+    first = dash.selected_id
+    (folder / f"{first}.npz").write_bytes(b"not a zip")
+    dash.reload()
+    assert dash.detail_error.visible and f"{first}.npz" in dash.detail_error.object.replace("\\_", "_")
+    assert dash.joints.object is None and len(dash.tabulator.value) == 3
+
+
+def test_notebook_is_valid_nbformat_without_outputs() -> None:
+    nb = json.loads(NOTEBOOK.read_text())
+    assert nb["nbformat"] == 4 and isinstance(nb["nbformat_minor"], int) and "metadata" in nb
+    assert nb["cells"]
+    for cell in nb["cells"]:
+        assert cell["cell_type"] in ("markdown", "code") and "metadata" in cell and isinstance(cell["source"], (str, list))
+        if cell["cell_type"] == "code":
+            assert cell["outputs"] == [] and cell["execution_count"] is None
+    code = "\n".join("".join(c["source"]) for c in nb["cells"] if c["cell_type"] == "code")
+    assert "build_dashboard" in code and "ServeLibrary" in code and "evaluate_serve" in code
+    compile(code, str(NOTEBOOK), "exec")  # the cells are valid Python
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture
+def served(library: Path) -> Iterator[str]:
+    import panel as pn
+
+    port = _free_port()
+    server = pn.serve({"/": lambda: build_dashboard(library)}, port=port, address="127.0.0.1", show=False, threaded=True, websocket_origin=[f"127.0.0.1:{port}"])
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                break
+        time.sleep(0.1)
+    yield f"http://127.0.0.1:{port}/"
+    server.stop()
+
+
+@pytest.mark.browser
+def test_dashboard_in_a_browser(served: str) -> None:
+    from playwright.sync_api import sync_playwright
+
+    if not os.path.exists(CHROMIUM):
+        pytest.fail(f"{CHROMIUM} is missing: ./dev test installs Debian's chromium (apt-get install chromium)")
+    ARTIFACTS.mkdir(exist_ok=True)
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(
+            executable_path=CHROMIUM,
+            headless=True,
+            args=["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update", "--disable-sync"],
+        )
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 1500})
+            page.goto(served)
+            for name in NAMES:
+                page.get_by_text(name.replace("_", " "), exact=True).first.wait_for(timeout=30_000)
+            page.get_by_text("3 serves").first.wait_for(timeout=10_000)
+            page.get_by_role("button", name="Download serve JSON").wait_for(timeout=10_000)
+            # click a table row: the detail heading follows
+            page.locator(".tabulator-row").filter(has_text="sidespin right").first.click()
+            page.get_by_role("heading", name="sidespin right").wait_for(timeout=20_000)
+            page.wait_for_timeout(500)
+            page.screenshot(path=str(ARTIFACTS / "dashboard.png"), full_page=True)
+        finally:
+            browser.close()
