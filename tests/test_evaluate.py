@@ -23,6 +23,7 @@ def context() -> EvaluationContext:
 
 def test_examples_cover_the_spins() -> None:
     serves = [load_serve(p) for p in EXAMPLES]
+    assert len({s.params for s in serves}) == len(serves)  # six different serves
     kinds = {(s.side, s.extra.get("spin")) for s in serves}
     for side in ("right", "left"):
         for spin in ("topspin", "backspin", "sidespin"):
@@ -45,7 +46,7 @@ def test_every_example_serve_is_legal(path: Path, context: EvaluationContext) ->
         assert ev.metrics.net["topspin"] < -50  # type: ignore[union-attr,index]
         assert sb["topspin"] < 10
     else:
-        assert abs(sb["sidespin"]) > 40
+        assert abs(sb["sidespin"]) > 100 and abs(sb["sidespin"]) > 0.9 * abs(sb["topspin"])
     assert ev.reward.s_leg == 0.0 and ev.reward.total > 0
 
 
