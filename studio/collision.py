@@ -16,24 +16,38 @@ through a custom collision detector based on Coal". This module does the same:
   named poses ``q_rest`` and ``q_flat`` (permanent contacts of the model, listed in
   :attr:`CollisionChecker.ignored_pairs`).
 
-Sampling: a trajectory is checked at every sample (1 kHz for plans). Broad phase,
-vectorised over all samples with numpy (batched forward kinematics of the joint
-frames): one bounding sphere per link, then per geometry its bounding sphere (or
-oriented box for boxes such as the gantry beam); (sample, pair) candidates are the
-overlapping robot/robot volumes and the robot volumes reaching a court box or the
-floor. Narrow phase: coal checks only the candidates (pinocchio ``computeCollision``
-per pair). At 1 kHz and racket speeds up to 10 m/s a point moves at most 1 cm between
-samples, less than the thinnest obstacle plus the racket (4 mm net + 14 mm blade), so
-a contact cannot be stepped over (it may be reported up to 1 ms late). ``stride`` > 1
-checks every stride-th sample only (faster, weaker guarantee). pinocchio's own
-broad-phase managers were tried and rejected: they skipped the forearm/flange pair
-(link_4/link_6) in 112 of 1500 random poses where it collides.
+Sampling: a trajectory is checked at its samples (1 kHz for plans). At 1 kHz and racket
+speeds up to 10 m/s a point moves at most 1 cm between samples, less than the thinnest
+obstacle plus the racket (4 mm net + 14 mm blade), so a contact cannot be stepped over
+(it may be reported up to 1 ms late). ``stride`` > 1 checks every stride-th sample only
+(faster, weaker guarantee).
+
+Two ways to find the first colliding sample, with the same result:
+
+* default, conservative advancement: each pair's coal distance d at a sample certifies
+  the following samples for which a bound on how much the pair can have approached
+  (joint steps |dq| times lever arms of the geometry about the joints between the two
+  bodies, :meth:`CollisionChecker._motion_bounds`) stays below d - 0.1 mm; the pair is
+  measured again at the first sample not certified, and checked with coal's collision
+  test when closer than 0.1 mm. About 2000 coal distance queries for a ~1100-sample strike
+  instead of a broad phase and collision tests at every sample.
+* ``exhaustive=True``: broad phase vectorised over all samples with numpy (batched
+  forward kinematics of the joint frames): one bounding sphere per link, then per
+  geometry its bounding sphere (or oriented box for boxes such as the gantry beam);
+  (sample, pair) candidates are the overlapping robot/robot volumes and the robot
+  volumes reaching a court box or the floor; coal checks the candidates of every sample.
+
+Collision requests compute contacts: with pinocchio's default requests coal 3.0.3
+missed shallow cylinder overlaps (6 of 2130 penetrating pairs in 2000 random poses).
+pinocchio's own broad-phase managers were tried and rejected: they skipped the
+forearm/flange pair (link_4/link_6) in 112 of 1500 random poses where it collides.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import coal
 import numpy as np
@@ -140,21 +154,21 @@ class CollisionChecker:
         for i, j in candidates:
             gm.addCollisionPair(pin.CollisionPair(i, j))
         self.data = model.createData()
-        self.geom_data = pin.GeometryData(gm)
+        self.geom_data = _geometry_data(gm)
         # Permanent contacts of the model: robot pairs touching in both named poses.
         touching = [set(self._colliding_pairs(q)) for q in (robot.q_rest, robot.q_flat)]
         permanent = {p for p in touching[0] & touching[1] if p[0] < n_robot and p[1] < n_robot}
         if permanent:
             for i, j in sorted(permanent):
                 gm.removeCollisionPair(pin.CollisionPair(i, j))
-            self.geom_data = pin.GeometryData(gm)
+            self.geom_data = _geometry_data(gm)
         self.ignored_pairs: tuple[tuple[str, str], ...] = tuple(
             (self.names[i], self.names[j]) for i, j in sorted(permanent)
         )
         self._pairs = [(int(cp.first), int(cp.second)) for cp in gm.collisionPairs]
         self._build_broad_phase(court if floor else None, n_robot, env)
 
-    def _build_broad_phase(self, court: Court | None, n_robot: int, env: list[tuple[str, object, pin.SE3]]) -> None:
+    def _build_broad_phase(self, court: Court | None, n_robot: int, env: list[tuple[str, Any, pin.SE3]]) -> None:
         """Bounding volumes of the robot geometries (spheres, oriented boxes, one sphere
         per link) and the court's axis-aligned boxes, for :meth:`_candidates`."""
         gm, model = self.geom_model, self.robot.model
@@ -216,12 +230,7 @@ class CollisionChecker:
         self._j_r = np.array(jr)
         jpos = {j: i for i, j in enumerate(self._joints)}
         self._g_jpos = np.array([jpos[j] for j in self._g_joint.tolist()], dtype=int)
-        # Conservative advancement: frames carrying geometry (world first) and pair members.
-        self._frames = sorted({0, *self._g_joint.tolist()})
-        fpos = {j: i for i, j in enumerate(self._frames)}
-        self._g_frame = np.array([fpos[j] for j in self._g_joint.tolist()], dtype=int)
-        self._pair_a = np.array([i for i, _ in self._pairs], dtype=int)
-        self._pair_b = np.array([j if j < n_robot else -1 for _, j in self._pairs], dtype=int)
+        self._build_motion_tables(model, {n_robot + e for e, (name, _, _) in enumerate(env) if name == "floor"})
         groups: dict[tuple[int, int], list[int]] = {}
         for row, (a, b) in enumerate(self._rr.tolist()):
             ja, jb = self._g_jpos[a], self._g_jpos[b]
@@ -390,10 +399,10 @@ class CollisionChecker:
         return CollisionReport(False, None, None, (), int(idx.size))
 
     def _check_advancing(self, tt: FloatArray, qq: FloatArray, idx: npt.NDArray[np.int64]) -> CollisionReport:
-        """Conservative advancement over the checked samples (see :meth:`_motion_bounds`).
+        """Conservative advancement over the checked samples (bounds: :meth:`_motion_bounds`).
 
         Each pair is measured with coal's distance d at some sample s; the samples s' after
-        it whose accumulated motion bound B(s, s') stays below d - margin cannot be in
+        it whose accumulated motion bound B(s') - B(s) stays below d - margin cannot be in
         contact for that pair and are skipped; the pair is measured again at the first
         sample where the bound reaches d - margin. Pairs closer than the margin are
         checked with coal's collision test (the exhaustive path's test) at that sample.
@@ -402,7 +411,8 @@ class CollisionChecker:
         model, data, gm, gd = self.robot.model, self.data, self.geom_model, self.geom_data
         S = idx.size
         qs = qq[idx]
-        cum = self._motion_bounds(qs)  # (P, S)
+        cum, view = self._motion_bounds(qs)  # (U, S), (P,)
+        rows = [cum[u] for u in view.tolist()]
         n_pairs = len(self._pairs)
         buckets: list[list[int]] = [[] for _ in range(S + 1)]
         buckets[0] = list(range(n_pairs))
@@ -412,67 +422,105 @@ class CollisionChecker:
             if not due:
                 continue
             buckets[s] = []
-            i = int(idx[s])
             pin.updateGeometryPlacements(model, data, gm, gd, qs[s])
-            collided = False
             for k in due:
-                d = float(pin.computeDistance(gm, gd, k).min_distance)
+                d = pin.computeDistance(gm, gd, k).min_distance
                 if d <= margin:
                     if pin.computeCollision(gm, gd, k):
-                        collided = True
-                        break
+                        hits = [kk for kk in range(n_pairs) if pin.computeCollision(gm, gd, kk)]
+                        return self._report(tt, int(idx[s]), hits, int(S))
                     nxt = s + 1
                 else:
-                    row = cum[k]
-                    nxt = int(np.searchsorted(row, row[s] + (d - margin), side="left"))
-                    if nxt <= s:
-                        nxt = s + 1
+                    row = rows[k]
+                    nxt = max(int(row.searchsorted(row[s] + (d - margin))), s + 1)
                 buckets[min(nxt, S)].append(k)
-            if collided:
-                hits = [k for k in range(n_pairs) if pin.computeCollision(gm, gd, k)]
-                return self._report(tt, i, hits, int(S))
         return CollisionReport(False, None, None, (), int(S))
 
-    def _motion_bounds(self, qs: FloatArray) -> FloatArray:
-        """Accumulated bounds B (P, S) on how much each pair's distance can shrink, samples (S, 8).
+    def _build_motion_tables(self, model: pin.Model, floors: set[int]) -> None:
+        """Joint-space levers of the "views" the pairs need, for :meth:`_motion_bounds`.
 
-        For a pair (a, b) and samples s < s', the distance at s' is at least
-        d(s) - (B[s'] - B[s]). Per step s -> s+1 the bound is the largest displacement of
-        a point of one geometry seen from the other geometry's joint frame (distances are
-        frame-invariant): a geometry with bounding sphere (centre c, radius rho) moving from
-        (c, R) to (c', R') in that frame moves its points by at most
-        |c' - c| + rho * ||R' - R||_2, with ||R' - R||_2 = ||R' - R||_F / sqrt(2) for
-        rotations (exact: two singular values 2 sin(theta/2), one zero). The smaller
-        of the two frames' bounds is used per step; court geometries are static in the world
-        frame (joint 0). This bounds the distance change between the samples themselves
-        (the exhaustive check also looks only at samples), whatever the path in between."""
-        P, R = self._fk(qs)  # (S, nj, 3), (S, nj, 3, 3)
+        A view (f, g) is robot geometry g seen from joint frame f (0: world, for the court
+        boxes); a floor view is g's height above the floor. Moving the joints one after the
+        other from sample s to s+1, a point x of g seen from f moves by at most
+        sum_k |dq_k| lever[k] over the joints k on the tree path between f and g's joint:
+        prismatic: 1; revolute: x's distance from the axis, at most |P_jg - P_k| + |c_g| +
+        rho_g (c_g, rho_g: g's bounding sphere in its joint frame), |P_jg - P_k| at most the
+        lengths of the joint placements on the path plus the travel max |q| of the
+        prismatic joints on it (added per motion, over its samples). For the floor only the
+        height matters: a joint whose axis a is fixed in the world (only prismatic joints
+        above it) moves heights by at most |a_z| |dq| (prismatic) or
+        sqrt(1 - a_z^2) lever |dq| (revolute: the motion is orthogonal to a)."""
+        parents = [int(p) for p in model.parents]
+        kinds = self._fk.kinds
+
+        def chain(j: int) -> set[int]:
+            out = set()
+            while j != 0:
+                out.add(j)
+                j = parents[j]
+            return out
+
+        _, R0 = self._fk(np.zeros((1, model.nq)))
+        fixed_axis: dict[int, FloatArray] = {}
+        for k in range(1, model.njoints):
+            if all(kinds[e][0] == "P" for e in chain(parents[k])):
+                fixed_axis[k] = R0[0, parents[k]] @ self._fk.placements[k][1] @ kinds[k][1]
+        edge = [0.0] + [float(np.linalg.norm(t)) for t, _ in self._fk.placements[1:]]
+        n_robot = self._n_robot
+        views: dict[tuple[int, int], int] = {}
+        first: list[int] = []
+        second: list[int] = []
+        for i, j in self._pairs:
+            if j >= n_robot:  # court: static in the world frame (-1: floor, height only)
+                first.append(views.setdefault((-1 if j in floors else 0, i), len(views)))
+                second.append(-1)
+            else:  # i seen from j's joint frame, j seen from i's
+                first.append(views.setdefault((int(self._g_joint[j]), i), len(views)))
+                second.append(views.setdefault((int(self._g_joint[i]), j), len(views)))
+        self._view_first = np.array(first, dtype=int)
+        self._view_second = np.array(second, dtype=int)
+        lever = np.zeros((model.nq, len(views)))
+        pris = np.zeros((model.nq, len(views), model.nq))
+        for (f, g), u in views.items():
+            jg = int(self._g_joint[g])
+            for k in chain(max(f, 0)) ^ chain(jg):
+                kind, _, iq = kinds[k]
+                if kind == "P":
+                    lever[iq, u] = abs(fixed_axis[k][2]) if f < 0 and k in fixed_axis else 1.0
+                    continue
+                path = chain(k) ^ chain(jg)
+                lever[iq, u] = float(np.linalg.norm(self._g_p[g])) + self._radii[g] + sum(edge[e] for e in path)
+                for e in path:
+                    if kinds[e][0] == "P":
+                        pris[iq, u, kinds[e][2]] = 1.0
+                if f < 0 and k in fixed_axis:
+                    scale = math.sqrt(max(0.0, 1.0 - float(fixed_axis[k][2]) ** 2))
+                    lever[iq, u] *= scale
+                    pris[iq, u] *= scale
+        self._lever = lever
+        self._lever_pris = pris
+
+    def _motion_bounds(self, qs: FloatArray) -> tuple[FloatArray, npt.NDArray[np.int64]]:
+        """Accumulated bounds B (U, S) on how much the pairs' distances can shrink, samples
+        (S, 8), and the row of B to use for each pair (P,).
+
+        For a pair k, row u = view[k] and checked samples s < s', the distance at s' is at
+        least d(s) - (B[u, s'] - B[u, s]) (distances are frame-invariant; levers:
+        :meth:`_build_motion_tables`). This bounds the distance change between the samples
+        themselves (the exhaustive check also looks only at samples) whatever the path in
+        between. Of a robot pair's two views the one whose bound grows less over the
+        motion is used."""
         S = qs.shape[0]
-        if S < 2:
-            return np.zeros((len(self._pairs), max(S, 1)))
-        J = np.array(self._frames, dtype=int)  # joint frames that carry geometry (incl. 0)
-        PJ, RJ = P[:, J], R[:, J]  # (S, F, 3), (S, F, 3, 3)
-        C = P[:, self._g_joint] + np.einsum("sgab,gb->sga", R[:, self._g_joint], self._g_p)  # (S, G, 3)
-        # Centres of every robot geometry in every frame: X[s, f, g] = R_f^T (C_g - P_f).
-        F, G = len(J), C.shape[1]
-        RJt = RJ.transpose(0, 1, 3, 2).reshape(S, 3 * F, 3)  # rows (f, a): R_f^T
-        X = (RJt @ C.transpose(0, 2, 1)).reshape(S, F, 3, G)  # R_f^T C_g
-        X -= np.sum(RJ * PJ[:, :, :, None], axis=2)[..., None]  # ... - R_f^T P_f
-        dX = np.sqrt(np.sum(np.square(X[1:] - X[:-1]), axis=2))  # (S-1, F, G)
-        Rrel = (RJt @ RJ.transpose(0, 2, 1, 3).reshape(S, 3, 3 * F)).reshape(S, F, 3, F, 3)  # R_f^T R_h
-        dR = np.sqrt(np.sum(np.square(Rrel[1:] - Rrel[:-1]), axis=(2, 4)) * 0.5)  # (S-1, F, F)
-        gf = self._g_frame  # frame index of each robot geometry
-        step = dX + dR[:, :, gf] * self._radii[None, None, :]  # (S-1, F, G): geometry g seen from frame f
-        a, b = self._pair_a, self._pair_b  # robot geometry of each pair; b = -1 for court geometries
-        env = b < 0
-        fa = gf[a]
-        fb = np.where(env, 0, gf[np.maximum(b, 0)])
-        pair_step = step[:, fb, a]  # a seen from b's frame (world for the court)
-        rr = ~env
-        pair_step[:, rr] = np.minimum(pair_step[:, rr], step[:, fa[rr], b[rr]])
-        out = np.zeros((len(self._pairs), S))
-        np.cumsum(pair_step.T, axis=1, out=out[:, 1:])
-        return out
+        lever = self._lever + self._lever_pris @ np.max(np.abs(qs), axis=0)  # (nq, U)
+        out = np.zeros((lever.shape[1], S))
+        if S > 1:
+            np.cumsum((np.abs(np.diff(qs, axis=0)) @ lever).T, axis=1, out=out[:, 1:])
+        view = self._view_first.copy()
+        rr = np.flatnonzero(self._view_second >= 0)
+        better = out[self._view_second[rr], -1] < out[view[rr], -1]
+        view[rr[better]] = self._view_second[rr[better]]
+        return out, view
+
 
 class _BatchJointFK:
     """World placements of all joint frames (pinocchio ``oMi``) for many
@@ -519,6 +567,19 @@ class _BatchJointFK:
             P[:, j] = Pj
             R[:, j] = Rj
         return P, R
+
+
+def _geometry_data(gm: pin.GeometryModel) -> pin.GeometryData:
+    """pinocchio geometry data whose collision requests compute contacts.
+
+    pinocchio's default requests (``enable_contact = False``) let coal 3.0.3 miss
+    penetrating cylinder pairs: link_4_0/link_6_0 overlapping by 0.8 mm (coal's signed
+    distance -8.2e-4 m) was reported free, found again with contacts enabled (regression
+    test in ``tests/test_collision.py``)."""
+    gd = pin.GeometryData(gm)
+    for req in gd.collisionRequests:
+        req.enable_contact = True
+    return gd
 
 
 def _box_placement(box: Box) -> pin.SE3:
