@@ -90,6 +90,9 @@ class StudioApp:
         self._suspend = False
         self._playing = False
         self._bounds = GenomeBounds()
+        self._stop_event = threading.Event()
+        self._optimizing = False
+        self.runs_dir = serves_dir.parent / "runs"
         self.worker: LatestWorker[Controls, Evaluation] = LatestWorker(self._compute, self._publish, name="studio-evaluator")
         self._build_gui()
         serves = list_serves(serves_dir) or list_serves(EXAMPLES_DIR)
@@ -138,6 +141,27 @@ class StudioApp:
             self.checks_md = gui.add_markdown("")
         with tabs.add_tab("Metrics"):
             self.metrics_md = gui.add_markdown("")
+        with tabs.add_tab("Optimize"):
+            gui.add_markdown(
+                "HEBO over the genome for the current task and toss side, seeded with the current "
+                "serve and the saved seeds of that side. Every evaluation is logged to the run folder."
+            )
+            self.opt_iterations = gui.add_number("iterations", initial_value=10, min=1, max=100, step=1)
+            self.opt_population = gui.add_number("population", initial_value=20, min=2, max=50, step=1)
+            self.opt_workers = gui.add_number("workers", initial_value=2, min=1, max=16, step=1)
+            self.opt_tosses = gui.add_number("tosses per evaluation", initial_value=5, min=1, max=20, step=1)
+            self.opt_seed = gui.add_number("seed", initial_value=0, min=0, max=2**31 - 1, step=1)
+            self.opt_follow = gui.add_checkbox("show best so far", initial_value=True)
+            self.opt_start = gui.add_button("Optimize from seeds")
+            self.opt_stop = gui.add_button("Stop", disabled=True)
+            self.opt_progress = gui.add_progress_bar(0.0, animated=False)
+            self.opt_md = gui.add_markdown("")
+            self.opt_plot = gui.add_uplot(
+                data=(np.zeros(1), np.zeros(1)),
+                series=({"label": "evaluations"}, {"label": "best reward", "stroke": "green", "width": 2}),
+                title="convergence",
+                aspect=1.6,
+            )
         with gui.add_folder("Playback"):
             self.play = gui.add_button("Play")
             self.time = gui.add_slider("time [s]", min=0.0, max=2.5, step=0.005, initial_value=0.0)
@@ -154,6 +178,8 @@ class StudioApp:
         self.upload_button.on_upload(lambda event: self._upload(event))
         self.export_button.on_click(lambda _event: self._export())
         self.play.on_click(lambda _event: self._toggle_play())
+        self.opt_start.on_click(lambda _event: self._start_optimization())
+        self.opt_stop.on_click(lambda _event: self._stop_event.set())
         self.time.on_update(lambda _event: None if self._playing else self.scene.show_time(self.time.value))
         self._refresh_serve_files()
 
@@ -329,6 +355,98 @@ class StudioApp:
                 self.time.min = float(pb.t[0])
                 self.time.value = float(np.clip(self.time.value, pb.t[0], pb.t[-1]))
                 self.scene.show_time(self.time.value)
+
+    # -- optimization -----------------------------------------------------------------
+
+    def seeds_for(self, side: str) -> list[HandServe]:
+        """The current serve plus every saved seed and example of ``side`` (valid files only)."""
+        seeds = [self.controls().serve]
+        for folder in (self.serves_dir, EXAMPLES_DIR):
+            for path in list_serves(folder).values():
+                try:
+                    serve = load_serve(path)
+                except StudioError:
+                    continue
+                if serve.side == side and all(serve.params != s.params for s in seeds):
+                    seeds.append(serve)
+        return seeds
+
+    def _start_optimization(self) -> None:
+        if self._optimizing:
+            return
+        try:
+            controls = self.controls()
+            iterations, population, workers, tosses, seed = (
+                int(h.value) for h in (self.opt_iterations, self.opt_population, self.opt_workers, self.opt_tosses, self.opt_seed)
+            )
+            if min(iterations, population, workers, tosses) < 1 or seed < 0:
+                raise InvalidInputError("iterations, population, workers and tosses must be >= 1 and the seed >= 0")
+        except (StudioError, TypeError, ValueError) as err:
+            self.opt_md.content = f"**Cannot start:** {err}"
+            return
+        self._optimizing = True
+        self._stop_event.clear()
+        self.opt_start.disabled = True
+        self.opt_stop.disabled = False
+        threading.Thread(
+            target=self._run_optimization,
+            args=(controls, iterations, population, workers, tosses, seed),
+            name="studio-optimizer",
+            daemon=True,
+        ).start()
+
+    def _run_optimization(self, controls: Controls, iterations: int, population: int, workers: int, tosses: int, seed: int) -> None:
+        from studio.optimizer import optimize_serve
+
+        side, task = controls.serve.side, controls.task
+        run_dir = self.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{side}-{task}"
+        xs: list[float] = []
+        ys: list[float] = []
+        last_best: list[ServeParams | None] = [None]
+
+        def progress(done: int, total: int, best: float, params: ServeParams | None) -> None:
+            self.opt_progress.value = 100.0 * done / max(total, 1)
+            xs.append(float(done))
+            ys.append(float(best))
+            self.opt_plot.data = (np.array(xs), np.array(ys))
+            self.opt_md.content = f"{done} / {total} evaluations, best reward {best:+.3f}  \nrun folder `{run_dir}`"
+            if params is not None and params != last_best[0] and self.opt_follow.value:
+                last_best[0] = params
+                self.load(HandServe(name=f"{task} best so far", side=side, params=params, task=task))
+
+        try:
+            seeds = self.seeds_for(side)
+            self.opt_md.content = f"evaluating {len(seeds)} seed(s) ..."
+            result = optimize_serve(
+                side=side,
+                task=task,
+                run_dir=run_dir,
+                seeds=seeds,
+                iterations=iterations,
+                population=population,
+                workers=workers,
+                tosses=tosses,
+                seed=seed,
+                progress=progress,
+                stop=self._stop_event,
+            )
+            if result.best is not None and result.summary is not None:
+                best = HandServe(name=f"{task} optimized", side=side, params=result.best.params, task=task, notes=f"HEBO run {run_dir.name}, seed {seed}")
+                self.load(best)
+                s = result.summary
+                self.opt_md.content = (
+                    f"**{'Stopped' if result.stopped else 'Done'}:** {result.evaluations} evaluations in {result.timings.get('total', 0):.0f} s. "
+                    f"Chosen serve: mean reward {s.mean_reward:+.3f} over {len(s.rewards)} fresh tosses, legal on {100 * s.legal_fraction:.0f} %. "
+                    f"It is now in the controls: export it to the library with *Export to library*.  \nrun folder `{run_dir}`"
+                )
+            else:
+                self.opt_md.content = "**Nothing evaluated.**"
+        except Exception as err:  # noqa: BLE001 - shown in the panel, the studio keeps running
+            self.opt_md.content = f"**Optimization failed:** {type(err).__name__}: {err}  \n(evaluations so far are kept in `{run_dir}`)"
+        finally:
+            self._optimizing = False
+            self.opt_start.disabled = False
+            self.opt_stop.disabled = True
 
     # -- playback ---------------------------------------------------------------------
 

@@ -53,6 +53,62 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0 if payload["legal"] else 1
 
 
+def _cmd_optimize(args: argparse.Namespace) -> int:
+    import threading
+    import time
+    from pathlib import Path
+
+    from studio.evaluate import EvaluationContext, evaluate_serve
+    from studio.optimizer import optimize_serve
+    from studio.serve import HandServe, load_serve
+
+    seeds = [load_serve(p) for p in args.seeds]
+    run_dir = Path(args.run_dir or f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{args.side}-{args.task}")
+    start = time.perf_counter()
+
+    def progress(done: int, total: int, best: float, _params: object) -> None:
+        print(f"\r{done:5d}/{total} evaluations  best reward {best:+.3f}  {time.perf_counter() - start:6.1f} s", end="", flush=True)
+
+    stop = threading.Event()
+    try:
+        result = optimize_serve(
+            side=args.side,
+            task=args.task,
+            run_dir=run_dir,
+            seeds=seeds,
+            iterations=args.iterations,
+            population=args.population,
+            tosses=args.tosses,
+            seed=args.seed,
+            workers=args.workers,
+            progress=progress,
+            stop=stop,
+            resume=args.resume,
+        )
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: every evaluation so far is in {run_dir}; continue with --resume --run-dir {run_dir}")
+        return 130
+    print()
+    if result.best is None or result.summary is None:
+        print("nothing evaluated")
+        return 1
+    s = result.summary
+    print(f"chosen serve: mean reward {s.mean_reward:+.3f} on {len(s.rewards)} fresh tosses, legal on {100 * s.legal_fraction:.0f} % ({'legal' if s.legal else 'not legal'})")
+    best = HandServe(name=args.name or f"{args.task} {args.side} seed {args.seed}", side=args.side, params=result.best.params, task=args.task, notes=f"HEBO run {run_dir}, seed {args.seed}")
+    out = run_dir / "best_serve.json"
+    from studio.serve import save_serve
+
+    save_serve(out, best)
+    print(f"best serve written to {out}")
+    if args.export:
+        from studio.library import ServeLibrary
+
+        evaluation = evaluate_serve(best, EvaluationContext.default(), task=args.task)
+        entry = ServeLibrary(args.export).add(evaluation, provenance={"kind": "hebo", "run": str(run_dir), "seed": args.seed}, task=args.task)
+        print(f"exported to {args.export} as {entry.id}")
+    return 0 if s.legal else 1
+
+
 def _cmd_dashboard(args: argparse.Namespace) -> int:
     from studio.dashboard import run_dashboard
 
@@ -94,6 +150,21 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     p.add_argument("--export", default=None, metavar="DIR", help="write the plan to the serve library folder DIR")
     handlers["evaluate"] = _cmd_evaluate
+
+    p = sub.add_parser("optimize", help="optimize one serve with HEBO, seeded from hand-designed serves")
+    p.add_argument("seeds", nargs="*", help="hand-designed serve JSON files observed before the first suggestion")
+    p.add_argument("--side", choices=("right", "left"), default="right")
+    p.add_argument("--task", default="topspin_velocity", help="reward task preset")
+    p.add_argument("--iterations", type=int, default=100, help="HEBO batches (paper: 100)")
+    p.add_argument("--population", type=int, default=20, help="suggestions per batch (paper: 20)")
+    p.add_argument("--tosses", type=int, default=5, help="recorded tosses per evaluation (default 5; 1: mean toss only, which overfits it)")
+    p.add_argument("--workers", type=int, default=2, help="evaluation processes")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--name", default=None, help="name of the resulting serve")
+    p.add_argument("--run-dir", default=None, help="run folder (evaluations.jsonl, run.json); default runs/<time>-<side>-<task>")
+    p.add_argument("--resume", action="store_true", help="continue the run in --run-dir without repeating evaluations")
+    p.add_argument("--export", default=None, metavar="DIR", help="export the chosen serve to this serve library")
+    handlers["optimize"] = _cmd_optimize
 
     p = sub.add_parser("dashboard", help="serve the Panel dashboard of a serve library")
     p.add_argument("--library", default="serve-library", help="serve library folder (default ./serve-library)")

@@ -1,0 +1,97 @@
+"""The studio app without a browser: controls, file helpers, optimization from seeds."""
+
+from __future__ import annotations
+
+import json
+import math
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import viser
+
+from studio.app import StudioApp, inside, list_serves, safe_name
+from studio.errors import InvalidInputError
+from studio.evaluate import EvaluationContext
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_safe_name_and_inside(tmp_path: Path) -> None:
+    assert safe_name(" my serve/../x ") == "my_serve____x"
+    with pytest.raises(InvalidInputError):
+        safe_name("../")
+    assert inside(tmp_path, tmp_path / "a.json")
+    assert not inside(tmp_path, tmp_path / ".." / "a.json")
+    (tmp_path / "b.json").write_text("{}")
+    assert list(list_serves(tmp_path)) == ["b"]
+    assert list_serves(tmp_path / "missing") == {}
+
+
+@pytest.fixture(scope="module")
+def app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[StudioApp]:
+    folder = tmp_path_factory.mktemp("studio")
+    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    studio = StudioApp(server, context=EvaluationContext.default(), serves_dir=folder / "serves", library_dir=folder / "lib")
+    assert studio.worker.wait_idle(300)
+    yield studio
+    studio.worker.close()
+    server.stop()
+
+
+def test_non_finite_control_is_rejected_not_evaluated(app: StudioApp) -> None:
+    before = app.worker.latest_ticket
+    app._suspend = True
+    app.vx.value = math.nan
+    app._suspend = False
+    app._changed()
+    assert "Input rejected" in app.message_md.content and "v_x" in app.message_md.content
+    assert app.worker.latest_ticket == before  # nothing submitted
+    app.vx.value = 3.0
+    assert app.worker.wait_idle(120)
+
+
+def test_corrupt_upload_is_reported(app: StudioApp) -> None:
+    class File:
+        name = "bad.json"
+        content = b'{"name": "x", "side": "up"}'
+
+    class Button:
+        value = File()
+
+    real = app.upload_button
+    app.upload_button = Button()  # type: ignore[assignment]
+    try:
+        app._upload(None)
+    finally:
+        app.upload_button = real
+    assert "Upload rejected" in app.message_md.content and "side" in app.message_md.content
+
+
+def test_optimize_from_seeds_runs_and_loads_the_best(app: StudioApp) -> None:
+    app.opt_iterations.value = 1
+    app.opt_population.value = 2
+    app.opt_workers.value = 1
+    app.opt_tosses.value = 2
+    seeds = app.seeds_for(app.side.value)
+    assert len(seeds) >= 3  # current serve + the shipped examples of that side
+    app._start_optimization()
+    deadline = time.monotonic() + 600
+    while app._optimizing and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not app._optimizing
+    assert "Done" in app.opt_md.content, app.opt_md.content
+    runs = list(app.runs_dir.iterdir())
+    assert len(runs) == 1
+    lines = (runs[0] / "evaluations.jsonl").read_text().splitlines()
+    assert len(lines) >= len(seeds) + 2
+    assert all(math.isfinite(json.loads(line)["reward"]) for line in lines)
+    assert app.opt_progress.value == pytest.approx(100.0)
+    assert app.worker.wait_idle(120)
+    assert app.last is not None and app.last.serve.name.endswith("optimized")

@@ -1,0 +1,50 @@
+"""The serve-studio command line: evaluate (text, JSON, export), optimize, errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from studio.cli import main
+from studio.library import ServeLibrary
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples" / "serves"
+
+
+def test_evaluate_json_has_the_documented_fields(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    code = main(["evaluate", str(EXAMPLES / "topspin_right.json"), "--json", "--export", str(tmp_path / "lib")])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 0 and out["legal"] is True and out["failed_check"] is None
+    for key in ("reward", "terms", "second_bounce", "net_clearance", "max_height", "planner"):
+        assert key in out
+    for key in ("p", "v", "w", "topspin", "sidespin"):
+        assert key in out["second_bounce"]
+    assert out["planner"]["status"] == "ok" and out["planner"]["solve_ms"] > 0
+    (entry,) = ServeLibrary(tmp_path / "lib").entries()
+    assert entry.id == out["exported"]["id"]
+
+
+def test_evaluate_text_and_robust(capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["evaluate", str(EXAMPLES / "sidespin_right.json"), "--tosses", "4", "--legal-fraction", "0.25"])
+    text = capsys.readouterr().out
+    assert "over 4 recorded tosses" in text and "check" in text
+    assert code in (0, 1)
+
+
+def test_bad_serve_file_is_a_clear_error(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"name": "x", "side": "right", "params": {"tau": 0.8, "velocity": [1, 2], "yaw": 0, "roll": 0}}))
+    assert main(["evaluate", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "bad.json" in err and "params.velocity" in err
+
+
+def test_optimize_tiny_budget_writes_run_and_best(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    code = main(["optimize", str(EXAMPLES / "topspin_right.json"), "--iterations", "1", "--population", "2", "--workers", "1", "--run-dir", str(run)])
+    out = capsys.readouterr().out
+    assert "chosen serve" in out and code in (0, 1)
+    assert (run / "best_serve.json").exists() and (run / "evaluations.jsonl").exists()
+    assert len((run / "evaluations.jsonl").read_text().splitlines()) == 3  # the seed + 2 suggestions

@@ -1,0 +1,254 @@
+"""HEBO serve optimization: seeding, logging, resume, reproducibility, NaN guard, stop, quiet stdout."""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from studio.errors import InvalidInputError
+from studio.hebo_adapter import HeboAdapter, HeboConfig
+from studio.optimizer import Outcome, bounds_for_toss, optimize_serve
+from studio.serve import GENE_NAMES, GenomeBounds, HandServe, ServeParams
+
+BOUNDS = GenomeBounds(tau=(0.65, 1.0))
+# cheap HEBO settings: GP from the 5th observation on, small NSGA-II
+FAST = HeboConfig(rand_sample=5, es_pop=16, es_iters=4, gp_epochs=10, max_train=16, keep_best=6)
+TARGET = np.array([0.3, 0.7, 0.4, 0.6, 0.5, 0.2, 0.8, 0.5, 0.5, 0.5])
+
+
+class FakeEvaluation:
+    """Cheap deterministic objective on the normalized genome; NaN in one corner."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[float, ...]] = []
+
+    def __call__(self, serve: HandServe, tosses: int, rng: np.random.Generator) -> Outcome:
+        z = serve.params.normalize(BOUNDS)
+        self.calls.append(tuple(np.round(z, 12)))
+        if z[1] > 0.9:  # "the simulator blew up"
+            return Outcome(math.nan, False, "illegal", "nan")
+        base = 1.0 - float(np.sum((z - TARGET) ** 2))
+        rewards = tuple(base + 0.05 * rng.standard_normal() for _ in range(max(1, tosses)))
+        return Outcome(float(np.mean(rewards)), base > 0.5, "legal" if base > 0.5 else "illegal", None, 1.0, rewards if tosses > 1 else ())
+
+
+def seed_serves() -> list[HandServe]:
+    zs = [np.full(10, 0.5), np.array([0.35, 0.65, 0.4, 0.55, 0.5, 0.25, 0.75, 0.5, 0.5, 0.5])]
+    return [HandServe(name=f"hand{i}", side="right", params=ServeParams.denormalize(z, BOUNDS)) for i, z in enumerate(zs)]
+
+
+def run(tmp: Path, fake: FakeEvaluation | None = None, **kw: object):
+    args = dict(side="right", task="topspin_velocity", run_dir=tmp, seeds=seed_serves(), iterations=3, population=4, workers=1, bounds=BOUNDS, config=FAST, seed=3, top_k=3, final_tosses=4, evaluate=fake or FakeEvaluation())
+    args.update(kw)
+    return optimize_serve(**args)  # type: ignore[arg-type]
+
+
+def read_log(run_dir: Path) -> list[dict]:
+    return [json.loads(line) for line in (run_dir / "evaluations.jsonl").read_text().splitlines()]
+
+
+def test_bounds_for_toss_spans_falling_ball_to_5cm_above_table() -> None:
+    from studio.toss import load_default_toss_model
+
+    toss = load_default_toss_model("right")
+    b = bounds_for_toss(toss)
+    i_apex = int(np.argmax(toss.p[:, 2]))
+    assert b.tau[0] == pytest.approx(toss.t[i_apex] + 0.02, abs=1e-9)
+    assert toss.mean_state(b.tau[0]).v[2] < -0.1  # falling at the earliest contact
+    assert toss.mean_state(b.tau[1]).p[2] == pytest.approx(0.05, abs=2e-3)  # 5 cm above the table
+    assert 0.6 < b.tau[0] < b.tau[1] < 1.05
+    assert b.velocity == GenomeBounds().velocity and b.offset == GenomeBounds().offset
+
+
+def test_adapter_replaces_nan_restores_threads_and_is_quiet(capsys: pytest.CaptureFixture[str]) -> None:
+    import torch
+
+    threads = torch.get_num_threads()
+    a = HeboAdapter(3, seed=1, config=FAST, penalty=10.0)
+    assert torch.get_num_threads() == threads
+    a.observe(np.array([[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]]), np.array([1.5, np.nan]))
+    np.testing.assert_array_equal(a.y, [1.5, 10.0])  # NaN became the penalty, not dropped
+    np.testing.assert_array_equal(a.X, [[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]])
+    rng = np.random.default_rng(0)
+    Z = rng.random((6, 3))
+    a.observe(Z, np.sum(Z**2, axis=1))
+    s = a.suggest(4)
+    assert s.shape == (4, 3) and np.all((s >= 0) & (s <= 1))
+    assert torch.get_num_threads() == threads
+    with pytest.raises(InvalidInputError):
+        a.observe(np.array([[np.nan, 0.0, 0.0]]), np.array([1.0]))
+    assert capsys.readouterr().out == ""
+
+
+def test_adapter_same_seed_same_suggestions_and_global_rng_untouched() -> None:
+    rng = np.random.default_rng(5)
+    Z = rng.random((8, 4))
+    y = np.sum((Z - 0.3) ** 2, axis=1)
+    out = []
+    for seed in (7, 7, 8):
+        a = HeboAdapter(4, seed=seed, config=FAST)
+        a.observe(Z, y)
+        np.random.seed(123)
+        s = a.suggest(3)
+        assert np.random.rand() == np.random.RandomState(123).rand()  # global numpy state restored
+        out.append(s)
+    np.testing.assert_array_equal(out[0], out[1])
+    assert not np.allclose(out[0], out[2])
+
+
+def test_capped_training_set_keeps_best_and_recent() -> None:
+    a = HeboAdapter(2, seed=0, config=HeboConfig(max_train=10, keep_best=4))
+    Z = np.linspace(0, 1, 40).reshape(20, 2)
+    y = np.arange(20.0)[::-1]  # the most recent points are the best
+    y[3] = -5.0  # one early very good point
+    a.observe(Z, y)
+    X, yy = a._training_set()
+    assert len(yy) == 10
+    assert -5.0 in yy.ravel()  # the early best point is kept
+    np.testing.assert_array_equal(X.to_numpy()[-1], Z[-1])  # the most recent too
+
+
+def test_seeds_are_observed_first_and_everything_is_logged(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    fake = FakeEvaluation()
+    res = run(tmp_path, fake)
+    seeds = seed_serves()
+    # HEBO's observations start with the two seeds, normalized, with y = -F
+    np.testing.assert_allclose(res.observed_X[:2], [s.params.normalize(BOUNDS) for s in seeds], atol=1e-12)
+    log = read_log(tmp_path)
+    assert [r["source"] for r in log[:2]] == ["seed:hand0", "seed:hand1"]
+    np.testing.assert_allclose(res.observed_y, [-r["reward"] for r in log])
+    assert len(log) == res.evaluations == 2 + 3 * 4 and [r["index"] for r in log] == list(range(14))
+    assert all(set(r["params"]) == set(GENE_NAMES) and r["seconds"] >= 0 for r in log)
+    run_json = json.loads((tmp_path / "run.json").read_text())
+    assert run_json["seed"] == 3 and run_json["bounds"]["tau"] == [0.65, 1.0] and run_json["side"] == "right"
+    # final pick: best mean over fresh tosses among distinct top candidates
+    assert res.summary is not None and len(res.summary.rewards) == 4
+    assert res.summary.mean_reward == pytest.approx(np.mean(res.summary.rewards))
+    assert res.summary.mean_reward == max(c.mean_reward for c in res.candidates)
+    assert res.best is not None and res.best.params == res.summary.params
+    assert len(fake.calls) == 14 + 3
+    assert capsys.readouterr().out == ""
+
+
+def test_nan_rewards_become_the_penalty(tmp_path: Path) -> None:
+    class AlwaysNan(FakeEvaluation):
+        def __call__(self, serve: HandServe, tosses: int, rng: np.random.Generator) -> Outcome:
+            super().__call__(serve, tosses, rng)
+            return Outcome(math.nan, False, "illegal", "nan")
+
+    res = run(tmp_path, AlwaysNan(), iterations=2, seeds=(), top_k=0)
+    assert res.observed_y.shape == (8,) and np.all(res.observed_y == 10.0)
+    assert all(r["reward"] == -10.0 for r in read_log(tmp_path))
+
+
+def test_same_seed_same_run_and_resume_at_batch_boundary_is_exact(tmp_path: Path) -> None:
+    a = run(tmp_path / "a")
+    b = run(tmp_path / "b")
+    ga = [r["genome"] for r in read_log(tmp_path / "a")]
+    assert ga == [r["genome"] for r in read_log(tmp_path / "b")]
+    np.testing.assert_array_equal(a.history, b.history)
+    c = run(tmp_path / "c", seed=4)
+    assert [r["genome"] for r in read_log(tmp_path / "c")][2:] != ga[2:]
+
+    # kill after the second batch (the progress callback raises), then resume
+    calls = []
+
+    def killer(done: int, total: int, best: float, params: ServeParams | None) -> None:
+        calls.append(done)
+        if done == 2 + 2 * 4:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run(tmp_path / "k", progress=killer)
+    assert len(read_log(tmp_path / "k")) == 10
+    fake = FakeEvaluation()
+    r = run(tmp_path / "k", fake, resume=True)
+    assert len(fake.calls) == 4 + 3  # one missing batch + the final re-evaluation
+    assert [x["genome"] for x in read_log(tmp_path / "k")] == ga  # identical to the uninterrupted run
+    assert r.evaluations == 14
+
+
+def test_resume_after_torn_batch_repeats_nothing(tmp_path: Path) -> None:
+    run(tmp_path, iterations=2)
+    path = tmp_path / "evaluations.jsonl"
+    lines = path.read_text().splitlines(keepends=True)
+    assert len(lines) == 10
+    kept = lines[:7]  # batch 1 lost 3 of its 4 points, and the last write was torn
+    path.write_text("".join(kept) + lines[7][:25])
+    fake = FakeEvaluation()
+    res = run(tmp_path, fake, iterations=3, resume=True)
+    log = read_log(tmp_path)
+    assert len(log) == res.evaluations == 2 + 3 * 4
+    assert [r["index"] for r in log] == list(range(14))
+    assert [r["batch"] for r in log] == [-1, -1] + [0] * 4 + [1] * 4 + [2] * 4
+    assert len(fake.calls) == 3 + 4 + 3  # the 3 missing of batch 1, batch 2, final pick
+    genomes = [tuple(r["genome"]) for r in log]
+    assert len(set(genomes)) == len(genomes)  # nothing evaluated twice
+    assert [list(g) for g in genomes[:7]] == [json.loads(line)["genome"] for line in kept]
+    np.testing.assert_allclose(res.observed_X, np.array(genomes))
+
+
+def test_resume_refuses_a_different_run(tmp_path: Path) -> None:
+    run(tmp_path, iterations=1)
+    with pytest.raises(InvalidInputError, match="seed"):
+        run(tmp_path, seed=99, resume=True)
+    with pytest.raises(InvalidInputError, match="resume"):
+        run(tmp_path)
+
+
+def test_stop_event_stops_between_batches(tmp_path: Path) -> None:
+    stop = threading.Event()
+    seen: list[int] = []
+
+    def progress(done: int, total: int, best: float, params: ServeParams | None) -> None:
+        seen.append(done)
+        assert total == 2 + 10 * 4 and math.isfinite(best) and params is not None
+        if done >= 2 + 4:
+            stop.set()
+
+    res = run(tmp_path, iterations=10, progress=progress, stop=stop)
+    assert res.stopped and res.evaluations == 2 + 4 and seen == [2, 6]
+    assert res.best is not None  # the final pick still ran
+
+
+def test_real_evaluation_of_a_seed_in_process(tmp_path: Path) -> None:
+    from studio.evaluate import EvaluationContext
+    from studio.serve import load_serve
+
+    ctx = EvaluationContext.default()
+    seed = load_serve(Path(__file__).resolve().parents[1] / "examples" / "serves" / "topspin_right.json")
+    res = optimize_serve(side="right", task="topspin_velocity", run_dir=tmp_path, context=ctx, seeds=[seed], iterations=0, workers=1, top_k=1, final_tosses=3)
+    log = read_log(tmp_path)
+    assert log[0]["status"] == "legal" and log[0]["reward"] > 0
+    assert res.summary is not None and len(res.summary.rewards) == 3
+    assert res.best is not None and res.best.side == "right"
+    with pytest.raises(InvalidInputError, match="left toss"):
+        left = HandServe(name="l", side="left", params=seed.params)
+        optimize_serve(side="right", task="topspin_velocity", run_dir=tmp_path / "x", context=ctx, seeds=[left], iterations=0, workers=1)
+
+
+def test_hebo_prints_go_to_the_logger(capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:
+    import logging
+
+    from hebo.models.gp import gp as hebo_gp
+
+    a = HeboAdapter(3, seed=0, config=FAST)
+    rng = np.random.default_rng(1)
+    Z = rng.random((8, 3))
+    a.observe(Z, np.sum(Z, axis=1))
+    original = hebo_gp.GP.fit
+
+    def noisy_fit(self, *args, **kw):  # what HEBO does on a Cholesky retry
+        print("jitter = 1e-06")
+        return original(self, *args, **kw)
+
+    monkeypatch.setattr(hebo_gp.GP, "fit", noisy_fit)
+    with caplog.at_level(logging.DEBUG, logger="studio.hebo"):
+        a.suggest(2)
+    assert capsys.readouterr().out == ""
+    assert any("jitter = 1e-06" in r.getMessage() for r in caplog.records)
