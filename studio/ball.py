@@ -1025,7 +1025,7 @@ _REST_SPEED = 0.02
 """Normal speed [m/s] below which a table/floor bounce ends the simulation ("rest")."""
 
 
-def _hermite(
+def hermite(
     theta: float, h: float, ya: Sequence[float], fa: Sequence[float], yb: Sequence[float], fb: Sequence[float], n: int
 ) -> list[float]:
     """Cubic Hermite interpolation of the first ``n`` state components at ``theta`` in [0, 1]."""
@@ -1251,7 +1251,7 @@ def simulate(
 
         def pos(theta: float, _ya: list[float] = ya, _fa: list[float] = fa, _y1: list[float] = y1,
                 _f1: list[float] = f1, _h: float = h) -> list[float]:
-            return _hermite(theta, _h, _ya, _fa, _y1, _f1, 3)
+            return hermite(theta, _h, _ya, _fa, _y1, _f1, 3)
 
         x0, y0, z0 = ya[0], ya[1], ya[2]
         xe, ye_, ze = y1[0], y1[1], y1[2]
@@ -1319,7 +1319,7 @@ def simulate(
 
         # --- event ---------------------------------------------------------------------
         te = t + best_theta * h
-        ye = _hermite(best_theta, h, ya, fa, y1, f1, 9)
+        ye = hermite(best_theta, h, ya, fa, y1, f1, 9)
         fe = deriv(ye)
         pieces_t.append((t, te))
         pieces_y.append((ya, fa, ye, fe))

@@ -68,6 +68,7 @@ from studio.ball import (
     NetModel,
     RacketModel,
     TableBounceModel,
+    hermite,
     rk4_step,
 )
 from studio.court import DEFAULT_COURT, Box, Court
@@ -508,17 +509,6 @@ def _default_dynamics() -> JointDynamics:
     return load_robot().dynamics
 
 
-def _hermite(theta: float, h: float, ya: list[float], fa: list[float], yb: list[float], fb: list[float], n: int) -> list[float]:
-    """Cubic Hermite interpolation of the first ``n`` components at ``theta`` in [0, 1]."""
-    t2 = theta * theta
-    t3 = t2 * theta
-    h00 = 2.0 * t3 - 3.0 * t2 + 1.0
-    h10 = (t3 - 2.0 * t2 + theta) * h
-    h01 = -2.0 * t3 + 3.0 * t2
-    h11 = (t3 - t2) * h
-    return [h00 * ya[i] + h10 * fa[i] + h01 * yb[i] + h11 * fb[i] for i in range(n)]
-
-
 def _hermite_rows(theta: FloatArray, h: FloatArray, ya: FloatArray, fa: FloatArray, yb: FloatArray, fb: FloatArray) -> FloatArray:
     """Vectorized cubic Hermite: theta, h (K,), the rest (K, n) -> (K, n)."""
     th = theta[:, None]
@@ -864,7 +854,7 @@ def rollout(
     }
 
     def ball_pos(tau: float, ta: float, h: float, ya: list[float], fa: list[float], yb: list[float], fb: list[float]) -> list[float]:
-        return _hermite((tau - ta) / h if h > 0.0 else 0.0, h, ya, fa, yb, fb, 3)
+        return hermite((tau - ta) / h if h > 0.0 else 0.0, h, ya, fa, yb, fb, 3)
 
     def search(ta: float, h: float, ya: list[float], fa: list[float], yb: list[float], fb: list[float]) -> tuple[float, int] | None:
         """First contact with a geom in [ta, ta + h], or None.
@@ -998,7 +988,7 @@ def rollout(
             continue
 
         tc, g = hit
-        ye = _hermite((tc - t_cur) / h, h, y, f, y1, f1, 9)
+        ye = hermite((tc - t_cur) / h, h, y, f, y1, f1, 9)
         fe = deriv(ye)
         pieces.append((t_cur, tc, y, f, ye, fe))
         contact = _impact(
