@@ -136,6 +136,7 @@ class StudioApp:
                 self.download_button = gui.add_button("Download JSON")
                 self.upload_button = gui.add_upload_button("Upload JSON", mime_type="application/json")
                 self.export_button = gui.add_button("Export to library")
+                self.library_pick = gui.add_dropdown("Library serve", options=["(none)"], initial_value="(none)")
         with tabs.add_tab("Checks"):
             self.status_md = gui.add_markdown("_evaluating..._")
             self.checks_md = gui.add_markdown("")
@@ -177,11 +178,13 @@ class StudioApp:
         self.download_button.on_click(lambda event: self._download(event))
         self.upload_button.on_upload(lambda event: self._upload(event))
         self.export_button.on_click(lambda _event: self._export())
+        self.library_pick.on_update(lambda _event: self._load_library_serve())
         self.play.on_click(lambda _event: self._toggle_play())
         self.opt_start.on_click(lambda _event: self._start_optimization())
         self.opt_stop.on_click(lambda _event: self._stop_event.set())
         self.time.on_update(lambda _event: None if self._playing else self.scene.show_time(self.time.value))
         self._refresh_serve_files()
+        self._refresh_library()
 
     # -- controls <-> serve -----------------------------------------------------------
 
@@ -308,6 +311,35 @@ class StudioApp:
         except StudioError as err:
             self._message(f"**Upload rejected:** {err}")
 
+    def _refresh_library(self) -> None:
+        """List the library's serves in the "Library serve" dropdown (errors go to the message)."""
+        from studio.library import ServeLibrary
+
+        try:
+            entries = ServeLibrary(self.library_dir).entries()
+        except StudioError as err:
+            entries = []
+            self._message(f"**Library unreadable:** {err}")
+        self._library_ids = {f"{e.data['name']} [{e.id}]": e.id for e in entries}
+        self._suspend = True
+        try:
+            self.library_pick.options = ["(none)", *self._library_ids]
+            self.library_pick.value = "(none)"
+        finally:
+            self._suspend = False
+
+    def _load_library_serve(self) -> None:
+        from studio.library import ServeLibrary
+
+        if self._suspend or self.library_pick.value == "(none)":
+            return
+        try:
+            entry = ServeLibrary(self.library_dir).get(self._library_ids[self.library_pick.value])
+            self.load(entry.serve)
+            self._message(f"Loaded library serve `{entry.id}`.")
+        except (StudioError, KeyError) as err:
+            self._message(f"**Cannot load library serve:** {err}")
+
     def _export(self) -> None:
         from studio.library import ServeLibrary
 
@@ -319,6 +351,7 @@ class StudioApp:
             entry = ServeLibrary(self.library_dir).add(evaluation, provenance={"kind": "hand-designed", "tool": "studio"}, task=self.task.value)
             verdict = "legal" if evaluation.legal else f"NOT legal ({evaluation.reason})"
             self._message(f"Exported `{evaluation.serve.name}` ({verdict}) to `{self.library_dir}` as `{entry.id}`.")
+            self._refresh_library()
         except (StudioError, OSError) as err:
             self._message(f"**Export failed:** {err}")
 

@@ -95,3 +95,18 @@ def test_optimize_from_seeds_runs_and_loads_the_best(app: StudioApp) -> None:
     assert app.opt_progress.value == pytest.approx(100.0)
     assert app.worker.wait_idle(120)
     assert app.last is not None and app.last.serve.name.endswith("optimized")
+
+
+def test_export_then_load_library_serve(app: StudioApp) -> None:
+    app._export()
+    assert "Exported" in app.message_md.content
+    labels = [o for o in app.library_pick.options if o != "(none)"]
+    assert labels
+    exported = app.last.serve.params  # type: ignore[union-attr]
+    app._suspend = True
+    app.vx.value = app.vx.value + 0.5
+    app._suspend = False
+    app.library_pick.value = labels[-1]
+    app._load_library_serve()
+    assert "Loaded library serve" in app.message_md.content
+    assert app.controls().serve.params.velocity[0] == pytest.approx(exported.velocity[0], abs=0.051)
