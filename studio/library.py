@@ -48,6 +48,9 @@ INDEX_NAME = "index.json"
 _ID = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
 _ENTRY_KEYS = {"id", "name", "side", "task", "params", "legal", "reward", "arrays", "created"}
 _ARRAYS = ("t", "u", "q", "ball_t", "ball_p")
+USAGE_KEYS = ("used", "won", "lost", "aces")
+"""Usage counters of an entry (``usage`` object): serves executed, points won and lost
+after them, aces (direct serve points)."""
 
 
 def robot_identity() -> dict[str, str]:
@@ -142,6 +145,10 @@ class ServeLibrary:
         serves = doc.get("serves")
         if not isinstance(serves, list):
             raise DataFileError(self.index_path, "field 'serves': must be a list")
+        return self._validated(serves)
+
+    def _validated(self, serves: list[Any]) -> list[LibraryEntry]:
+        """Validate index entries (as read from or about to be written to the index)."""
         out: list[LibraryEntry] = []
         seen: set[str] = set()
         for i, entry in enumerate(serves):
@@ -164,9 +171,30 @@ class ServeLibrary:
             reward = entry["reward"]
             if isinstance(reward, bool) or not isinstance(reward, (int, float)) or not np.isfinite(reward):
                 raise DataFileError(self.index_path, f"field '{where}.reward': must be a finite number")
+            usage = entry.get("usage")
+            if usage is not None:
+                if not isinstance(usage, dict):
+                    raise DataFileError(self.index_path, f"field '{where}.usage': must be an object")
+                for key in USAGE_KEYS:
+                    n = usage.get(key, 0)
+                    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+                        raise DataFileError(self.index_path, f"field '{where}.usage.{key}': must be a non-negative integer, got {n!r}")
             e = LibraryEntry(entry, self.folder)
             e.serve  # validates name, side and params, naming the entry
             out.append(e)
+        return out
+
+    def replace_entries(self, serves: list[dict[str, Any]]) -> list[LibraryEntry]:
+        """Rewrite the index with ``serves`` (entry dicts), validated first, written atomically.
+
+        Used to update usage counters and to remove (prune) serves; the arrays files are
+        not touched. Raises DataFileError naming the field if an entry is malformed.
+        """
+        doc = {"schema": LIBRARY_SCHEMA, "serves": serves}
+        data = json.loads(json.dumps(doc))  # plain JSON values only, validated as they will be read
+        out = self._validated(data["serves"])
+        self.folder.mkdir(parents=True, exist_ok=True)
+        _atomic_write(self.index_path, (json.dumps(data, indent=2) + "\n").encode("utf-8"))
         return out
 
     def get(self, serve_id: str) -> LibraryEntry:
