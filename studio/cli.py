@@ -129,6 +129,126 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return calibration_main([] if args.folds is None else ["--folds", str(args.folds)])
 
 
+def _cmd_library(args: argparse.Namespace) -> int:
+    return int(args.library_handler(args))
+
+
+def _library_list(args: argparse.Namespace) -> int:
+    from studio.library import ServeLibrary
+    from studio.selection import serve_cluster, usage_count
+
+    entries = ServeLibrary(args.dir).entries()
+    print(f"{len(entries)} serves in {args.dir}")
+    print("| id | name | side | task | cluster | reward | legal | used | won | lost | aces |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for e in entries:
+        d = e.data
+        u = d.get("usage") if isinstance(d.get("usage"), dict) else {}
+        print(
+            f"| {e.id} | {d['name']} | {d['side']} | {d.get('task') or ''} | {serve_cluster(e)} | {float(d['reward']):+.3f} "
+            f"| {'yes' if d['legal'] else 'no'} | {usage_count(e)} | {u.get('won', 0)} | {u.get('lost', 0)} | {u.get('aces', 0)} |"
+        )
+    return 0
+
+
+def _library_show(args: argparse.Namespace) -> int:
+    import json
+
+    from studio.library import ServeLibrary
+    from studio.selection import serve_cluster
+
+    entry = ServeLibrary(args.dir).get(args.id)
+    print(f"cluster: {serve_cluster(entry)}")
+    print(json.dumps(entry.data, indent=2))
+    return 0
+
+
+def _library_validate(args: argparse.Namespace) -> int:
+    from studio.errors import DataFileError
+    from studio.library import ServeLibrary
+    from studio.match import MATCH_LOG, load_points
+
+    lib = ServeLibrary(args.dir)
+    try:
+        if not lib.index_path.exists():
+            raise DataFileError(lib.index_path, "missing: not a serve library")
+        entries = lib.entries()
+        for e in entries:
+            e.arrays()
+        points = load_points(lib.folder / MATCH_LOG)
+    except DataFileError as err:
+        print(f"serve-studio library validate: invalid: {err}", file=sys.stderr)
+        return 1
+    print(f"{args.dir}: valid ({len(entries)} serves with their arrays, {len(points)} logged points)")
+    return 0
+
+
+def _library_select(args: argparse.Namespace) -> int:
+    from studio.library import ServeLibrary
+    from studio.selection import select_next, serve_cluster, usage_count
+
+    entry = select_next(ServeLibrary(args.dir).entries(), args.previous)
+    print(f"{entry.id}\t{entry.data['name']}\t{serve_cluster(entry)}\tused {usage_count(entry)}")
+    return 0
+
+
+def _library_record(args: argparse.Namespace) -> int:
+    from datetime import UTC, datetime
+
+    from studio.errors import InvalidInputError
+    from studio.library import ServeLibrary
+    from studio.match import MATCH_LOG, Point, append_point, load_points, sync_usage
+
+    lib = ServeLibrary(args.dir)
+    entries = lib.entries()
+    if args.server == "robot":
+        if args.serve is None:
+            raise InvalidInputError("--serve ID is required when the robot serves")
+        if args.serve not in {e.id for e in entries}:
+            raise InvalidInputError(f"serve {args.serve!r} not found in library {args.dir}")
+    elif args.serve is not None:
+        raise InvalidInputError("--serve is only for robot serves (--server robot)")
+    log = lib.folder / MATCH_LOG
+    points = load_points(log)  # refuse to append to a corrupt log
+    point = Point(time=datetime.now(UTC).isoformat(timespec="seconds"), server=args.server, serve=args.serve, winner=args.winner, ace=args.ace, opponent=args.opponent)
+    append_point(log, point)
+    sync_usage(lib, points + [point])
+    print(f"recorded point {len(points) + 1}: server {args.server}, serve {args.serve or '-'}, winner {args.winner}{', ace' if args.ace else ''}")
+    return 0
+
+
+def _library_stats(args: argparse.Namespace) -> int:
+    from studio.library import ServeLibrary
+    from studio.match import MATCH_LOG, load_points, stats_report
+
+    lib = ServeLibrary(args.dir)
+    print(stats_report(lib.entries(), load_points(lib.folder / MATCH_LOG), min_uses=args.min_uses))
+    return 0
+
+
+def _library_prune(args: argparse.Namespace) -> int:
+    from studio.library import ServeLibrary
+    from studio.match import MATCH_LOG, PRUNED_DIR, load_points, prune, prune_candidates, serve_records
+
+    lib = ServeLibrary(args.dir)
+    entries = lib.entries()
+    records = serve_records(load_points(lib.folder / MATCH_LOG), [e.id for e in entries])
+    candidates, total = prune_candidates(records, min_uses=args.min_uses)
+    baseline = "-" if total.n == 0 else f"{100 * total.rate:.1f} %"
+    print(f"library serving win rate {baseline} over {total.n} serves; rule: used >= {args.min_uses} and Wilson 95 % upper bound below it")
+    for c in candidates:
+        r = c.record
+        print(f"  {r.id}: {r.won}/{r.used} won, upper bound {100 * c.upper:.1f} %")
+    if not candidates:
+        print("nothing to prune")
+    elif args.dry_run:
+        print(f"dry run: {len(candidates)} serve(s) would be pruned")
+    else:
+        pruned = prune(lib, [c.record.id for c in candidates])
+        print(f"pruned {len(pruned)} serve(s) into {lib.folder / PRUNED_DIR}: {', '.join(pruned)}")
+    return 0
+
+
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     parser = argparse.ArgumentParser(prog="serve-studio", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -181,6 +301,41 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p = sub.add_parser("calibrate", help="fit the racket impact model on the bounce data and print cross-validated errors")
     p.add_argument("--folds", type=int, default=None)
     handlers["calibrate"] = _cmd_calibrate
+
+    p = sub.add_parser("library", help="serve library: list, show, validate, select the next serve, record points, statistics, prune")
+    lsub = p.add_subparsers(dest="library_command", required=True)
+    q = lsub.add_parser("list", help="table of the serves with spin cluster, reward, legality and usage")
+    q.add_argument("dir", help="serve library folder")
+    q.set_defaults(library_handler=_library_list)
+    q = lsub.add_parser("show", help="one serve's index entry")
+    q.add_argument("dir", help="serve library folder")
+    q.add_argument("id", help="serve id")
+    q.set_defaults(library_handler=_library_show)
+    q = lsub.add_parser("validate", help="load the index, every NPZ and the match log; exit 1 naming file and field on failure")
+    q.add_argument("dir", help="serve library folder")
+    q.set_defaults(library_handler=_library_validate)
+    q = lsub.add_parser("select", help="the next serve: least used, from a spin cluster other than the previous serve's")
+    q.add_argument("dir", help="serve library folder")
+    q.add_argument("--previous", default=None, metavar="ID", help="id of the serve executed last")
+    q.set_defaults(library_handler=_library_select)
+    q = lsub.add_parser("record", help="append a point to DIR/matches.jsonl and update the usage counters")
+    q.add_argument("dir", help="serve library folder")
+    q.add_argument("--serve", default=None, metavar="ID", help="the robot's serve (required when the robot serves)")
+    q.add_argument("--winner", required=True, choices=("robot", "opponent"))
+    q.add_argument("--ace", action="store_true", help="the serve won the point directly")
+    q.add_argument("--server", choices=("robot", "opponent"), default="robot")
+    q.add_argument("--opponent", default=None, metavar="NAME", help="opponent's name")
+    q.set_defaults(library_handler=_library_record)
+    q = lsub.add_parser("stats", help="Table-I-like summary (Wilson 95 %% intervals, aces) and per-serve records")
+    q.add_argument("dir", help="serve library folder")
+    q.add_argument("--min-uses", type=int, default=10, help="minimum uses before a serve is flagged for pruning")
+    q.set_defaults(library_handler=_library_stats)
+    q = lsub.add_parser("prune", help="move the statistically worst serves to DIR/pruned/")
+    q.add_argument("dir", help="serve library folder")
+    q.add_argument("--min-uses", type=int, default=10, help="minimum uses before a serve can be pruned (default 10)")
+    q.add_argument("--dry-run", action="store_true", help="only report what would be pruned")
+    q.set_defaults(library_handler=_library_prune)
+    handlers["library"] = _cmd_library
     return parser, handlers
 
 

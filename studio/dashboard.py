@@ -41,14 +41,8 @@ from bokeh.plotting import figure
 from studio.court import DEFAULT_COURT
 from studio.errors import StudioError
 from studio.library import INDEX_NAME, LibraryEntry, ServeLibrary
+from studio.selection import entry_cluster, net_state, spin_cluster
 
-SPIN_DOMINANCE = 0.8
-"""A spin component is dominant when its magnitude is at least this fraction of the total
-spin |ω| at the net (0.8: the spin axis lies within ~37° of that component's axis).
-Engineering choice for a readable colouring, not from the paper."""
-MIN_SPIN = 10.0
-"""Below this total spin [rad/s] a serve is classed ``"no spin"`` (a served ball with
-less than ~1.6 rev/s is practically spinless)."""
 CLUSTERS = ("topspin", "backspin", "sidespin", "mixed", "no spin", "no net crossing")
 """Spin cluster labels, in legend order."""
 CLUSTER_COLORS = {
@@ -75,74 +69,6 @@ TITLES = {
     "clearance": "net clearance [m]",
 }
 """Table column titles with units."""
-
-
-def spin_cluster(topspin: float, sidespin: float, cork: float = 0.0, *, dominance: float = SPIN_DOMINANCE, min_spin: float = MIN_SPIN) -> str:
-    """Spin cluster of a ball by the dominant component of its spin at the net crossing.
-
-    Args:
-        topspin: top/back component ω·e_y [rad/s] (> 0 topspin, < 0 backspin).
-        sidespin: side component ω·e_z [rad/s].
-        cork: cork component ω·e_x [rad/s] (counts in the total only).
-        dominance: fraction of |ω| a component needs to be dominant (see ``SPIN_DOMINANCE``).
-        min_spin: below this |ω| [rad/s] the result is ``"no spin"``.
-
-    Returns:
-        ``"topspin"``, ``"backspin"``, ``"sidespin"``, ``"mixed"`` (no dominant component)
-        or ``"no spin"``; ``"no net crossing"`` when a component is not finite.
-    """
-    values = (float(topspin), float(sidespin), float(cork))
-    if not all(math.isfinite(x) for x in values):
-        return "no net crossing"
-    total = math.sqrt(sum(x * x for x in values))
-    if total < min_spin:
-        return "no spin"
-    if abs(values[0]) >= dominance * total:
-        return "topspin" if values[0] > 0 else "backspin"
-    if abs(values[1]) >= dominance * total:
-        return "sidespin"
-    return "mixed"
-
-
-@dataclass(frozen=True)
-class NetState:
-    """Ball at the net crossing, as stored in a library entry (world frame)."""
-
-    speed_h: float
-    """Horizontal speed sqrt(v_x² + v_y²) [m/s]."""
-    spin: float
-    """Total spin |ω| [rad/s]."""
-    topspin: float
-    """Top/back spin component [rad/s] (> 0 topspin)."""
-    sidespin: float
-    """Side spin component [rad/s]."""
-    cork: float
-    """Cork spin component [rad/s]."""
-    clearance: float
-    """Height of the ball's bottom above the net top [m] (NaN if not stored)."""
-
-
-def net_state(entry: dict[str, Any]) -> NetState | None:
-    """The ball state at the net crossing of an index entry, None if absent or malformed."""
-    net = entry.get("net")
-    if not isinstance(net, dict):
-        return None
-    try:
-        v = np.asarray(net["v"], dtype=float)
-        w = np.asarray(net["w"], dtype=float)
-        tb, ss, ck = (float(net[k]) for k in ("topspin", "sidespin", "cork"))
-        clearance = float(net["clearance"]) if net.get("clearance") is not None else math.nan
-    except (KeyError, TypeError, ValueError):
-        return None
-    if v.shape != (3,) or w.shape != (3,) or not (np.all(np.isfinite(v)) and np.all(np.isfinite(w))):
-        return None
-    return NetState(speed_h=float(np.hypot(v[0], v[1])), spin=float(np.linalg.norm(w)), topspin=tb, sidespin=ss, cork=ck, clearance=clearance)
-
-
-def entry_cluster(entry: dict[str, Any]) -> str:
-    """Spin cluster of an index entry (``"no net crossing"`` when it has no net state)."""
-    net = net_state(entry)
-    return "no net crossing" if net is None else spin_cluster(net.topspin, net.sidespin, net.cork)
 
 
 def library_table(entries: list[LibraryEntry]) -> pd.DataFrame:
