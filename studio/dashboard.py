@@ -12,8 +12,8 @@ What it shows:
   studio (and ``serve-studio evaluate``) load;
 - a reload button that re-reads the library folder.
 
-Match statistics and optimization convergence are not shown: the library has no data
-format for them yet. A corrupt library (``DataFileError``) is shown as a message naming
+Match statistics (the paper's Table I and a per-serve table) come from the library's
+``matches.jsonl``; optimization convergence is not shown yet. A corrupt library (``DataFileError``) is shown as a message naming
 the file and the field; nothing raises out of a callback.
 
 World frame (``DESIGN.md``): origin at the centre of the playing surface, +X towards the
@@ -240,6 +240,7 @@ class LibraryDashboard:
         self.detail_title = pn.pane.Markdown("", sizing_mode="stretch_width")
         self.detail_error = pn.pane.Alert("", alert_type="danger", visible=False, sizing_mode="stretch_width")
         self.joints = pn.pane.Bokeh(None, sizing_mode="stretch_width")
+        self.match = pn.pane.Markdown("", sizing_mode="stretch_width")
         self.top_view = pn.pane.Bokeh(None, sizing_mode="stretch_width")
         self.side_view = pn.pane.Bokeh(None, sizing_mode="stretch_width")
         self.studio_link = pn.pane.Markdown("", sizing_mode="stretch_width")
@@ -264,12 +265,25 @@ class LibraryDashboard:
                 sizing_mode="stretch_width",
             ),
             self.joints,
-            pn.pane.Markdown("*Match statistics and optimization convergence are not shown: the library has no data for them yet.*"),
+            pn.pane.Markdown("### Match statistics"),
+            self.match,
             sizing_mode="stretch_width",
         )
         self.reload()
 
     # -- data --------------------------------------------------------------------------
+
+    def _match_text(self) -> str:
+        """Table I-like statistics from the library's match log (``matches.jsonl``), as Markdown."""
+        from studio.match import MATCH_LOG, load_points, stats_report
+
+        path = self.library.folder / MATCH_LOG
+        if not path.exists():
+            return f"No match log yet (`{MATCH_LOG}`): record points with `serve-studio library record {self.library.folder} ...`."
+        try:
+            return stats_report(self.entries, load_points(path))
+        except StudioError as err:
+            return f"**Cannot read the match log:** {_text(str(err))}"
 
     def reload(self) -> None:
         """Re-read the library folder; a corrupt library leaves an error message, no exception."""
@@ -293,6 +307,7 @@ class LibraryDashboard:
         else:
             n_legal = int(self.table["legal"].sum())
             self._show_status(f"{len(self.entries)} serves ({n_legal} legal) in `{self.library.index_path}`.", "info")
+        self.match.object = self._match_text()
         self._refresh()
 
     def filtered(self) -> pd.DataFrame:

@@ -208,3 +208,25 @@ def test_dashboard_in_a_browser(served: str) -> None:
             page.screenshot(path=str(ARTIFACTS / "dashboard.png"), full_page=True)
         finally:
             browser.close()
+
+
+def test_match_statistics_from_the_log(library: Path, tmp_path: Path) -> None:
+    import shutil
+
+    from studio.match import MATCH_LOG
+
+    folder = tmp_path / "lib"
+    shutil.copytree(library, folder)
+    dash = LibraryDashboard(folder)
+    assert "No match log yet" in dash.match.object
+    serve_id = ServeLibrary(folder).entries()[0].id
+    lines = [
+        {"time": "2026-11-23T10:00:00+00:00", "server": "robot", "serve": serve_id, "winner": "robot", "ace": True},
+        {"time": "2026-11-23T10:01:00+00:00", "server": "opponent", "serve": None, "winner": "opponent", "ace": False},
+    ]
+    (folder / MATCH_LOG).write_text("".join(json.dumps(x) + "\n" for x in lines))
+    dash.reload()
+    assert "win % serving" in dash.match.object and serve_id in dash.match.object
+    (folder / MATCH_LOG).write_text('{"time": "x"}\n')
+    dash.reload()
+    assert "Cannot read the match log" in dash.match.object and "matches.jsonl" in dash.match.object
