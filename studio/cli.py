@@ -109,6 +109,77 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     return 0 if s.legal else 1
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    """Train ``count`` serves for a task (one HEBO run each, seeds seed0, seed0+1, ...),
+    export each chosen serve to the library, and print a Table II-like summary."""
+    import json
+    import time
+    from pathlib import Path
+
+    import numpy as np
+
+    from studio.evaluate import EvaluationContext, evaluate_serve
+    from studio.library import ServeLibrary
+    from studio.optimizer import optimize_serve
+    from studio.reward import task_weights
+    from studio.serve import HandServe, load_serve
+
+    weights = task_weights(args.task)
+    seeds = [load_serve(p) for p in args.seeds]
+    library = ServeLibrary(args.library)
+    runs = Path(args.runs or f"runs/train-{args.task}")
+    context = EvaluationContext.default()
+    rows: list[dict[str, float]] = []
+    sides = ["right", "left"] if args.side == "both" else [args.side]
+    for i in range(args.count):
+        side = sides[i % len(sides)]
+        run_dir = runs / f"{i:03d}-{side}-seed{args.seed + i}"
+        done = run_dir / "exported.json"
+        if done.exists():  # finished in an earlier, interrupted invocation
+            rows.append(json.loads(done.read_text())["row"])
+            print(f"[{i + 1}/{args.count}] {run_dir.name}: already trained")
+            continue
+        start = time.perf_counter()
+        result = optimize_serve(
+            side=side,
+            task=args.task,
+            run_dir=run_dir,
+            seeds=[s for s in seeds if s.side == side],
+            iterations=args.iterations,
+            population=args.population,
+            tosses=args.tosses,
+            seed=args.seed + i,
+            workers=args.workers,
+            resume=(run_dir / "evaluations.jsonl").exists(),
+        )
+        if result.best is None:
+            print(f"[{i + 1}/{args.count}] {run_dir.name}: nothing evaluated")
+            continue
+        best = HandServe(name=f"{args.task} {side} {args.seed + i}", side=side, params=result.best.params, task=args.task)
+        ev = evaluate_serve(best, context, task=args.task)
+        row: dict[str, float] = {"legal": float(ev.legal), "reward": float(ev.reward.total)}
+        sb = ev.metrics.second_bounce if ev.metrics else None
+        if sb is not None:
+            row.update(
+                aim_mm=1000 * float(np.hypot(sb["p"][0] - weights.target[0], sb["p"][1] - weights.target[1])),
+                vx=sb["v"][0], vy=sb["v"][1], vz=sb["v"][2], cork=sb["cork"], topback=sb["topspin"], side=sb["sidespin"],
+            )
+        # Only legal serves enter the library; illegal results stay in their run folder.
+        entry_id = library.add(ev, provenance={"kind": "hebo", "run": str(run_dir), "seed": args.seed + i}, task=args.task).id if ev.legal else None
+        done.write_text(json.dumps({"id": entry_id, "row": row}))
+        rows.append(row)
+        verdict = f"exported as {entry_id}" if entry_id else f"not legal ({ev.reason}), not exported"
+        print(f"[{i + 1}/{args.count}] {run_dir.name}: reward {ev.reward.total:+.3f}, {verdict} ({time.perf_counter() - start:.0f} s)")
+    legal = [r for r in rows if r.get("legal") and "vx" in r]
+    print(f"\n{args.task}: {len(legal)} legal of {len(rows)} trained serves (sim, second bounce; mean ± std)")
+    cols = ["aim_mm", "vx", "vy", "vz", "cork", "topback", "side"] if args.task == "aiming" else ["vx", "vy", "vz", "cork", "topback", "side"]
+    heads = {"aim_mm": "aim error [mm]", "vx": "v_x [m/s]", "vy": "v_y [m/s]", "vz": "v_z [m/s]", "cork": "cork [rad/s]", "topback": "top/back [rad/s]", "side": "side [rad/s]"}
+    print(" | ".join(heads[c] for c in cols))
+    if legal:
+        print(" | ".join(f"{np.mean([r[c] for r in legal]):.1f} ± {np.std([r[c] for r in legal]):.1f}" for c in cols))
+    return 0
+
+
 def _cmd_dashboard(args: argparse.Namespace) -> int:
     from studio.dashboard import run_dashboard
 
@@ -285,6 +356,20 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--resume", action="store_true", help="continue the run in --run-dir without repeating evaluations")
     p.add_argument("--export", default=None, metavar="DIR", help="export the chosen serve to this serve library")
     handlers["optimize"] = _cmd_optimize
+
+    p = sub.add_parser("train", help="train COUNT serves for a task (one HEBO run each) into a library, print a Table II-like summary")
+    p.add_argument("--task", required=True, help="reward task preset")
+    p.add_argument("--count", type=int, default=25)
+    p.add_argument("--library", required=True, help="serve library folder to export to")
+    p.add_argument("--seeds", nargs="*", default=[], help="hand-designed serve JSON files to seed every run")
+    p.add_argument("--side", choices=("right", "left", "both"), default="both")
+    p.add_argument("--iterations", type=int, default=100)
+    p.add_argument("--population", type=int, default=20)
+    p.add_argument("--tosses", type=int, default=5)
+    p.add_argument("--workers", type=int, default=2, help="evaluation processes per run")
+    p.add_argument("--seed", type=int, default=0, help="seed of the first run (run i uses seed + i)")
+    p.add_argument("--runs", default=None, help="folder of the run folders (default runs/train-<task>); rerun to resume")
+    handlers["train"] = _cmd_train
 
     p = sub.add_parser("dashboard", help="serve the Panel dashboard of a serve library")
     p.add_argument("--library", default="serve-library", help="serve library folder (default ./serve-library)")
