@@ -42,7 +42,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Literal, Protocol, runtime_checkable
+from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
 import numpy.typing as npt
@@ -880,20 +880,27 @@ class SampledRacketMotion:
             if omega.shape != (n, 3) or not np.all(np.isfinite(omega)):
                 raise InvalidInputError(f"SampledRacketMotion: omega must be finite ({n}, 3), got {omega.shape}")
         self._omega = omega
-        self._cl = self._c.tolist()
-        self._rvl = self._rv.tolist()
-        self._Rl = self._R[:-1].tolist()
+        self._rows: dict[int, tuple[Any, Any, Any]] = {}  # interval -> python floats (hot path), filled on demand
+
+    def _row(self, i: int) -> tuple[Any, Any, Any]:
+        """Spline coefficients (4, 3), slerp increment (3,) and R_i (3, 3) of interval i as
+        nested lists (converted on first use: a flight touches few intervals)."""
+        row = self._rows.get(i)
+        if row is None:
+            row = self._rows[i] = (self._c[i].tolist(), self._rv[i].tolist(), self._R[i].tolist())
+        return row
 
     def _fast_plane(self, t: float) -> tuple[float, float, float, float, float, float]:
         """Origin and face-A normal at ``t`` as six floats (hot path of :func:`simulate`)."""
         tl = self._tl
         i = min(max(bisect.bisect_right(tl, t) - 1, 0), len(tl) - 2)
         dt = t - tl[i]
-        c0, c1, c2, c3 = self._cl[i]
+        cl, rvl, Ri = self._row(i)
+        c0, c1, c2, c3 = cl
         o = [((c0[j] * dt + c1[j]) * dt + c2[j]) * dt + c3[j] for j in range(3)]
         # e_z rotated by the slerp increment (Rodrigues on one vector), then by R_i
         frac = dt / (tl[i + 1] - tl[i])
-        kx, ky, kz = self._rvl[i]
+        kx, ky, kz = rvl
         kx, ky, kz = frac * kx, frac * ky, frac * kz
         th = math.sqrt(kx * kx + ky * ky + kz * kz)
         if th > 1e-12:
@@ -904,7 +911,6 @@ class SampledRacketMotion:
         ux = s * ky + cm * kx * kz
         uy = -s * kx + cm * ky * kz
         uz = 1.0 - cm * (kx * kx + ky * ky)
-        Ri = self._Rl[i]
         n = [Ri[j][0] * ux + Ri[j][1] * uy + Ri[j][2] * uz for j in range(3)]
         return o[0], o[1], o[2], n[0], n[1], n[2]
 

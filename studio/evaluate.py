@@ -76,6 +76,9 @@ class EvaluationContext:
     """Legality thresholds."""
     switch_delay: float = SWITCH_DELAY
     """Planner take-over time after lift [s]."""
+    planner_options: Any = None
+    """:class:`studio.planner.PlannerOptions` of the strike planner (``None``: its defaults,
+    IPOPT fallback on). Training turns the fallback off (see :func:`training_context`)."""
     _tosses: dict[str, TossModel] = field(default_factory=dict)
     _toss_reports: dict[str, Any] = field(default_factory=dict)
 
@@ -83,6 +86,26 @@ class EvaluationContext:
     def default(cls) -> EvaluationContext:
         """Context on the shipped robot, tosses and models."""
         return cls(robot=load_robot())
+
+    @classmethod
+    def for_training(cls, *, ipopt_fallback: bool = False) -> EvaluationContext:
+        """Context for optimization runs: the strike planner without its IPOPT fallback.
+
+        Measured on 300 uniformly drawn genomes (right toss): the fallback rescued none of
+        the 113 plans the SQP could not finish, and made the mean evaluation 3x slower
+        (106 ms against 33 ms; p95 379 against 71 ms). A target the SQP misses costs the
+        optimizer one -10 evaluation instead.
+        """
+        from studio.planner import PlannerOptions
+
+        return cls(robot=load_robot(), planner_options=PlannerOptions(fallback=ipopt_fallback))
+
+    def warm_up(self, side: TossSide) -> None:
+        """Build the toss model of ``side``, the planner and the collision model now
+        (instead of in the first evaluation)."""
+        self.toss_model(side)
+        self.planner
+        self.collision
 
     def toss_model(self, side: TossSide) -> TossModel:
         """The toss model of one side (default recordings), cached."""
@@ -95,7 +118,7 @@ class EvaluationContext:
         """The strike planner (built on first use)."""
         from studio.planner import StrikePlanner
 
-        return StrikePlanner(self.robot)
+        return StrikePlanner(self.robot, options=self.planner_options)
 
     @cached_property
     def racket_poses(self) -> Any:

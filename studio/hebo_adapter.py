@@ -78,6 +78,11 @@ class HeboConfig:
     first suggestions are scrambled Sobol points."""
     torch_threads: int = 1
     """Torch threads during a suggestion (HEBO forces 1 at import); restored afterwards."""
+    vector_nsga: bool = True
+    """Run NSGA-II on plain float vectors (pymoo's SBX/PM operators, numpy duplicate
+    elimination) instead of HEBO's mixed-variable setup (the same real-valued operators
+    behind per-individual dicts and an O(n^2) Python duplicate check): the same search,
+    ~4x cheaper for an all-continuous genome."""
 
     def __post_init__(self) -> None:
         if self.max_train is not None and self.max_train < 8:
@@ -93,7 +98,7 @@ class HeboConfig:
     @classmethod
     def hebo_defaults(cls) -> HeboConfig:
         """HEBO 0.3.6's own settings (no cap, NSGA-II 100 x 100, 100 GP epochs)."""
-        return cls(max_train=None, es_pop=100, es_iters=100, gp_epochs=100)
+        return cls(max_train=None, es_pop=100, es_iters=100, gp_epochs=100, vector_nsga=False)
 
     def to_json(self) -> dict[str, Any]:
         return {name: getattr(self, name) for name in self.__slots__}  # type: ignore[attr-defined]
@@ -123,6 +128,39 @@ def _import_hebo() -> dict[str, Any]:
         MixedVariableDuplicateElimination=MixedVariableDuplicateElimination,
         MixedVariableMating=MixedVariableMating, minimize=minimize,
     )  # fmt: skip
+
+
+def _vector_acq_problem_class() -> type:
+    from pymoo.core.problem import Problem
+
+    class VectorAcqProblem(Problem):  # type: ignore[misc]
+        """HEBO's acquisition (e.g. MACE, several objectives) over [0, 1]^dim as a
+        vectorized pymoo problem (rows of X are points)."""
+
+        def __init__(self, acq: Any, dim: int) -> None:
+            self.acq = acq
+            super().__init__(n_var=dim, n_obj=acq.num_obj, n_ieq_constr=acq.num_constr, xl=0.0, xu=1.0)
+
+        def _evaluate(self, X: npt.NDArray[np.float64], out: dict[str, Any], *args: Any, **kwargs: Any) -> None:
+            import torch
+
+            with torch.no_grad():
+                v = self.acq(torch.from_numpy(np.asarray(X, dtype=np.float32)), torch.zeros((len(X), 0), dtype=torch.long))
+            out["F"] = v[:, : self.acq.num_obj].numpy()
+            if self.acq.num_constr:
+                out["G"] = v[:, self.acq.num_obj :].numpy()
+
+    return VectorAcqProblem
+
+
+def _VectorAcqProblem(acq: Any, dim: int) -> Any:
+    global _VECTOR_PROBLEM
+    if _VECTOR_PROBLEM is None:
+        _VECTOR_PROBLEM = _vector_acq_problem_class()
+    return _VECTOR_PROBLEM(acq, dim)
+
+
+_VECTOR_PROBLEM: Any = None
 
 
 class HeboAdapter:
@@ -286,18 +324,24 @@ class HeboAdapter:
         acq = h["MACE"](model, best_y=py_best, kappa=kappa)
         mu, sig = h["Mean"](model), h["Sigma"](model, linear_a=-1.0)
 
-        prob = h["BOProblem"](acq, space, None)
-        init_pop = h["get_init_pop"](space, cfg.es_pop, best_x, True)
-        algo = h["NSGA2"](
-            pop_size=cfg.es_pop,
-            sampling=init_pop,
-            mating=h["MixedVariableMating"](eliminate_duplicates=h["MixedVariableDuplicateElimination"]()),
-            eliminate_duplicates=h["MixedVariableDuplicateElimination"](),
-        )
+        if cfg.vector_nsga:
+            init = pd.concat([best_x, space.sample(cfg.es_pop)], axis=0).head(cfg.es_pop)[self.names].to_numpy(dtype=float)
+            prob: Any = _VectorAcqProblem(acq, self.dim)
+            algo = h["NSGA2"](pop_size=cfg.es_pop, sampling=init, eliminate_duplicates=True)
+        else:  # HEBO's own mixed-variable setup
+            prob = h["BOProblem"](acq, space, None)
+            algo = h["NSGA2"](
+                pop_size=cfg.es_pop,
+                sampling=h["get_init_pop"](space, cfg.es_pop, best_x, True),
+                mating=h["MixedVariableMating"](eliminate_duplicates=h["MixedVariableDuplicateElimination"]()),
+                eliminate_duplicates=h["MixedVariableDuplicateElimination"](),
+            )
         res = h["minimize"](prob, algo, ("n_gen", cfg.es_iters), verbose=False, seed=key % (2**31))
         x = res.X
         if x is None:
             rec = np.empty((0, self.dim))
+        elif cfg.vector_nsga:
+            rec = np.atleast_2d(np.asarray(x, dtype=float))
         else:
             x = [x] if isinstance(x, dict) else list(x)
             rec = pd.DataFrame(x)[self.names].to_numpy(dtype=float)

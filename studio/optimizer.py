@@ -221,7 +221,9 @@ per core), the workers' BLAS/OpenMP pools oversubscribe the cores and one evalua
 takes ~3x longer (measured 170 ms instead of 55 ms per evaluation on 2 workers, 2 cores)."""
 
 
-def _worker_init() -> None:
+def _worker_init(side: TossSide | None = None, ipopt_fallback: bool = False) -> None:
+    """Initializer of an evaluation process: one thread per BLAS/OpenMP pool, a training
+    context (:meth:`EvaluationContext.for_training`) warmed up for ``side``."""
     global _WORKER_CONTEXT
     for var in WORKER_THREAD_VARS:
         os.environ[var] = "1"
@@ -230,7 +232,9 @@ def _worker_init() -> None:
     threadpool_limits(1)
     from studio.evaluate import EvaluationContext
 
-    _WORKER_CONTEXT = EvaluationContext.default()
+    _WORKER_CONTEXT = EvaluationContext.for_training(ipopt_fallback=ipopt_fallback)
+    if side is not None:
+        _WORKER_CONTEXT.warm_up(side)
 
 
 def _context() -> Any:
@@ -267,33 +271,40 @@ def _worker_eval(job: tuple[str, str, list[float], int, float, int]) -> tuple[di
 class EvaluatorPool:
     """Evaluates physical genomes (n, 10) in ``workers`` spawned processes (1: in-process).
 
-    Each worker builds its :class:`~studio.evaluate.EvaluationContext` once (initializer).
+    Each worker builds a training :class:`~studio.evaluate.EvaluationContext` once
+    (initializer; :meth:`~studio.evaluate.EvaluationContext.for_training`, IPOPT fallback
+    off unless ``ipopt_fallback``) and warms it up for ``side``. The workers are spawned
+    at construction and initialize in the background (about 3 s) while the caller goes on.
     Use as a context manager; ``evaluate`` overrides the real evaluation (in-process).
     """
 
-    def __init__(self, *, side: TossSide, task: str, workers: int = 2, min_legal_fraction: float = 0.8, evaluate: EvaluateFn | None = None, context: Any = None) -> None:
+    def __init__(
+        self, *, side: TossSide, task: str, workers: int = 2, min_legal_fraction: float = 0.8, evaluate: EvaluateFn | None = None,
+        context: Any = None, ipopt_fallback: bool = False,
+    ) -> None:  # fmt: skip
         if workers < 1:
             raise InvalidInputError(f"workers must be >= 1, got {workers}")
         self.side, self.task, self.workers, self.p = side, task, int(workers), float(min_legal_fraction)
         self._evaluate = evaluate
         self._context = context
+        self._ipopt_fallback = bool(ipopt_fallback)
         self._pool: ProcessPoolExecutor | None = None
         if evaluate is None and workers > 1:
-            self._pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init)
-            # spawn every worker now, with the single-thread variables in its environment
-            # from the start (set in os.environ of this process only while spawning)
+            self._pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init, initargs=(side, self._ipopt_fallback))
+            # spawn every worker now (submit starts the processes), with the single-thread
+            # variables in its environment from the start (set in os.environ of this
+            # process only while spawning); they initialize while the caller goes on
             saved = {v: os.environ.get(v) for v in WORKER_THREAD_VARS}
             try:
                 os.environ.update({v: "1" for v in WORKER_THREAD_VARS})
-                started = [self._pool.submit(os.getpid) for _ in range(workers)]
+                for _ in range(workers):
+                    self._pool.submit(os.getpid)
             finally:
                 for v, old in saved.items():
                     if old is None:
                         os.environ.pop(v, None)
                     else:
                         os.environ[v] = old
-            for f in started:
-                f.result()
 
     def __enter__(self) -> EvaluatorPool:
         return self
@@ -317,7 +328,11 @@ class EvaluatorPool:
                 if self._evaluate is not None:
                     out = self._evaluate(serve, tosses, rng)
                 else:
-                    ctx = self._context if self._context is not None else _context()
+                    if self._context is None:
+                        from studio.evaluate import EvaluationContext
+
+                        self._context = EvaluationContext.for_training(ipopt_fallback=self._ipopt_fallback)
+                    ctx = self._context
                     out = evaluate_outcome(serve, task=self.task, tosses=tosses, min_legal_fraction=self.p, rng=rng, context=ctx)
                 yield out, time.perf_counter() - t0
             return
@@ -407,6 +422,7 @@ def optimize_serve(
     top_k: int = 5,
     final_tosses: int = 10,
     evaluate: EvaluateFn | None = None,
+    ipopt_fallback: bool = False,
 ) -> OptimizationResult:
     """Optimize a serve's genome for ``task`` on the ``side`` toss with HEBO (maximize F).
 
@@ -434,6 +450,8 @@ def optimize_serve(
             candidates on ``final_tosses`` fresh recorded tosses; best mean wins.
         evaluate: replaces the evaluation (``evaluate(serve, tosses, rng) -> Outcome``),
             run in this process (tests).
+        ipopt_fallback: let the strike planner fall back to IPOPT when its SQP misses
+            (off by default in training: :meth:`EvaluationContext.for_training`).
     """
     t_start = time.perf_counter()
     if iterations < 0 or population < 1:
@@ -443,6 +461,23 @@ def optimize_serve(
     for s in seeds:
         if s.side != side:
             raise InvalidInputError(f"seed serve {s.name!r} is for the {s.side} toss, the run is for the {side} toss")
+    # the workers start first and initialize while this process loads the toss model and HEBO
+    pool = EvaluatorPool(side=side, task=task, workers=workers, min_legal_fraction=min_legal_fraction, evaluate=evaluate, context=context, ipopt_fallback=ipopt_fallback)
+    try:
+        return _optimize(
+            pool, t_start, side=side, task=task, run_dir=run_dir, context=context, seeds=seeds, iterations=iterations, population=population,
+            tosses=tosses, min_legal_fraction=min_legal_fraction, seed=seed, progress=progress, stop=stop, bounds=bounds, config=config,
+            resume=resume, top_k=top_k, final_tosses=final_tosses, evaluate=evaluate, ipopt_fallback=ipopt_fallback,
+        )  # fmt: skip
+    finally:
+        pool.close()
+
+
+def _optimize(
+    pool: EvaluatorPool, t_start: float, *, side: TossSide, task: str, run_dir: Path, context: Any, seeds: Sequence[HandServe], iterations: int,
+    population: int, tosses: int, min_legal_fraction: float, seed: int, progress: ProgressFn | None, stop: threading.Event | None,
+    bounds: GenomeBounds | None, config: HeboConfig, resume: bool, top_k: int, final_tosses: int, evaluate: EvaluateFn | None, ipopt_fallback: bool,
+) -> OptimizationResult:  # fmt: skip
     if bounds is None:
         if context is not None:
             toss = context.toss_model(side)
@@ -472,13 +507,15 @@ def optimize_serve(
         "bounds": _bounds_json(bounds),
         "genes": list(GENE_NAMES),
         "config": config.to_json(),
+        "ipopt_fallback": bool(ipopt_fallback),
         "seeds": [s.to_json() for s in seeds],
     }
     log_path = run_dir / "evaluations.jsonl"
     records: list[EvaluationRecord] = []
     if resume and (run_dir / "run.json").exists():
         old = json.loads((run_dir / "run.json").read_text())
-        for key in ("side", "task", "seed", "population", "tosses", "bounds", "config", "min_legal_fraction"):
+        old.setdefault("ipopt_fallback", False)  # runs logged before the option existed
+        for key in ("side", "task", "seed", "population", "tosses", "bounds", "config", "min_legal_fraction", "ipopt_fallback"):
             if old.get(key) != json.loads(json.dumps(run_json[key])):
                 raise InvalidInputError(f"resume: {run_dir / 'run.json'} has {key}={old.get(key)!r}, this call has {run_json[key]!r}")
         records = _read_jsonl(log_path)
@@ -527,47 +564,46 @@ def optimize_serve(
             progress(len(records), total, b, p)
 
     try:
-        with EvaluatorPool(side=side, task=task, workers=workers, min_legal_fraction=min_legal_fraction, evaluate=evaluate, context=context) as pool:
-            n_seed_done = sum(1 for r in records if r.batch == -1)
-            if n_seed_done < len(seeds):
-                todo = list(seeds)[n_seed_done:]
-                Z = np.array([s.params.normalize(bounds) for s in todo])
-                run_batch(Z, -1, [f"seed:{s.name}" for s in todo], pool)
-                report()
-            for it in range(iterations):
-                done = sum(1 for r in records if r.batch == it)
-                missing = population - done
-                if missing <= 0:
-                    continue
-                if stop is not None and stop.is_set():
-                    stopped = True
-                    break
-                t0 = time.perf_counter()
-                Z = opt.suggest(missing)
-                timings["suggest"] += time.perf_counter() - t0
-                run_batch(Z, it, ["hebo"] * missing, pool)
-                report()
-
-            # final pick: top-k distinct candidates, re-evaluated on fresh tosses
+        n_seed_done = sum(1 for r in records if r.batch == -1)
+        if n_seed_done < len(seeds):
+            todo = list(seeds)[n_seed_done:]
+            Z = np.array([s.params.normalize(bounds) for s in todo])
+            run_batch(Z, -1, [f"seed:{s.name}" for s in todo], pool)
+            report()
+        for it in range(iterations):
+            done = sum(1 for r in records if r.batch == it)
+            missing = population - done
+            if missing <= 0:
+                continue
+            if stop is not None and stop.is_set():
+                stopped = True
+                break
             t0 = time.perf_counter()
-            candidates: list[FinalCandidate] = []
-            if records and top_k > 0:
-                order = sorted(records, key=lambda r: (-r.reward, r.index))
-                picked: list[EvaluationRecord] = []
-                for r in order:
-                    if all(not np.allclose(r.genome, q.genome, atol=1e-9) for q in picked):
-                        picked.append(r)
-                    if len(picked) == top_k:
-                        break
-                Xf = np.array([[r.params[g] for g in GENE_NAMES] for r in picked])
-                fseeds = [int(np.random.SeedSequence([seed, 2, k]).generate_state(1)[0]) for k in range(len(picked))]
-                for r, (out, _sec) in zip(picked, pool.map(Xf, tosses=final_tosses, rng_seeds=fseeds)):
-                    rewards = out.rewards if out.rewards else (out.reward,)
-                    candidates.append(
-                        FinalCandidate(ServeParams.from_vector([r.params[g] for g in GENE_NAMES]), tuple(r.genome), r.reward, float(out.reward), bool(out.legal), float(out.legal_fraction), tuple(rewards))
-                    )  # fmt: skip
-                candidates.sort(key=lambda c: -c.mean_reward)
-            timings["final"] = time.perf_counter() - t0
+            Z = opt.suggest(missing)
+            timings["suggest"] += time.perf_counter() - t0
+            run_batch(Z, it, ["hebo"] * missing, pool)
+            report()
+
+        # final pick: top-k distinct candidates, re-evaluated on fresh tosses
+        t0 = time.perf_counter()
+        candidates: list[FinalCandidate] = []
+        if records and top_k > 0:
+            order = sorted(records, key=lambda r: (-r.reward, r.index))
+            picked: list[EvaluationRecord] = []
+            for r in order:
+                if all(not np.allclose(r.genome, q.genome, atol=1e-9) for q in picked):
+                    picked.append(r)
+                if len(picked) == top_k:
+                    break
+            Xf = np.array([[r.params[g] for g in GENE_NAMES] for r in picked])
+            fseeds = [int(np.random.SeedSequence([seed, 2, k]).generate_state(1)[0]) for k in range(len(picked))]
+            for r, (out, _sec) in zip(picked, pool.map(Xf, tosses=final_tosses, rng_seeds=fseeds)):
+                rewards = out.rewards if out.rewards else (out.reward,)
+                candidates.append(
+                    FinalCandidate(ServeParams.from_vector([r.params[g] for g in GENE_NAMES]), tuple(r.genome), r.reward, float(out.reward), bool(out.legal), float(out.legal_fraction), tuple(rewards))
+                )  # fmt: skip
+            candidates.sort(key=lambda c: -c.mean_reward)
+        timings["final"] = time.perf_counter() - t0
     finally:
         log.close()
 

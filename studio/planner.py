@@ -432,10 +432,14 @@ def _free_response_terms(wn: FloatArray, zeta: FloatArray, d: FloatArray) -> tup
     (under-damped; sinh/cosh over-damped; series near critical damping), d (..., 1)."""
     a = zeta * wn
     om = wn * np.sqrt(np.abs(zeta**2 - 1.0))
+    under = zeta < 1.0 - 1e-6
+    if np.all(under):  # every joint under-damped (the serve robot): one complex exp, no masked writes
+        e = np.exp((1j * om - a) * d)
+        return e.imag / om, e.real
+    ex = np.exp(-a * d)
     shape = np.broadcast_shapes(d.shape, wn.shape)
     s = np.empty(shape)
     c = np.empty(shape)
-    under = zeta < 1.0 - 1e-6
     over = zeta > 1.0 + 1e-6
     crit = ~(under | over)
     if np.any(under):
@@ -450,7 +454,6 @@ def _free_response_terms(wn: FloatArray, zeta: FloatArray, d: FloatArray) -> tup
         x2 = np.sign(zeta[crit] - 1.0) * (om[crit] * d) ** 2
         s[..., crit] = d * (1.0 + x2 / 6.0)
         c[..., crit] = 1.0 + x2 / 2.0
-    ex = np.exp(-a * d)
     return ex * s, ex * c
 
 
