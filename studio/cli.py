@@ -183,7 +183,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _cmd_dashboard(args: argparse.Namespace) -> int:
     from studio.dashboard import run_dashboard
 
-    run_dashboard(library_dir=args.library, host=args.host, port=args.port, studio_url=args.studio_url)
+    run_dashboard(library_dir=args.library, host=args.host, port=args.port, studio_url=args.studio_url, runs_dir=args.runs)
     return 0
 
 
@@ -376,6 +376,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default: localhost only)")
     p.add_argument("--port", type=int, default=5006)
     p.add_argument("--studio-url", default="http://127.0.0.1:8080", help="link to the studio shown beside each serve")
+    p.add_argument("--runs", default="runs", help="folder of HEBO run folders for the convergence plots (default ./runs; runs elsewhere are not read)")
     handlers["dashboard"] = _cmd_dashboard
 
     p = sub.add_parser("toss", help="analyse toss recordings: lift time, rise, spread")

@@ -13,8 +13,12 @@ What it shows:
 - a reload button that re-reads the library folder.
 
 Match statistics (the paper's Table I and a per-serve table) come from the library's
-``matches.jsonl``; optimization convergence is not shown yet. A corrupt library (``DataFileError``) is shown as a message naming
-the file and the field; nothing raises out of a callback.
+``matches.jsonl``. Optimization convergence: for the serves whose provenance names a HEBO
+run folder (``serve-studio optimize|train``), the best reward so far against evaluations,
+one line per run, the selected serve's run highlighted with its per-evaluation rewards;
+run folders are only read inside ``runs_dir`` (default ``./runs``, where the CLI writes
+them). A corrupt library or run log (``DataFileError``) is shown as a message naming the
+file and the field; nothing raises out of a callback.
 
 World frame (``DESIGN.md``): origin at the centre of the playing surface, +X towards the
 receiver, +Z up, SI units. Spin components are the paper's velocity-aligned ones
@@ -192,6 +196,81 @@ def spin_scatter(df: pd.DataFrame, *, axes: str = SCATTER_AXES[0], selected_id: 
     return fig
 
 
+def run_folder(entry: LibraryEntry, runs_dir: Path) -> Path | None:
+    """The HEBO run folder named by ``entry``'s provenance, if it lies inside ``runs_dir``.
+
+    Relative run paths are taken from the current folder (as the CLI wrote them). A path
+    outside ``runs_dir`` is not followed (the index is user data)."""
+    prov = entry.data.get("provenance")
+    run = prov.get("run") if isinstance(prov, dict) and prov.get("kind") == "hebo" else None
+    if not isinstance(run, str) or not run:
+        return None
+    path = Path(run).resolve()
+    root = runs_dir.resolve()
+    return path if path.is_relative_to(root) and path.is_dir() else None
+
+
+def run_histories(entries: list[LibraryEntry], runs_dir: Path) -> tuple[dict[str, Any], list[str]]:
+    """Convergence histories of the entries' runs: ({entry id: RunHistory}, error messages)."""
+    from studio.optimizer import load_run_history
+
+    out: dict[str, Any] = {}
+    errors: list[str] = []
+    cache: dict[Path, Any] = {}
+    for e in entries:
+        folder = run_folder(e, runs_dir)
+        if folder is None:
+            continue
+        if folder not in cache:
+            try:
+                cache[folder] = load_run_history(folder)
+            except StudioError as err:
+                cache[folder] = None
+                errors.append(str(err))
+        if cache[folder] is not None:
+            out[e.id] = cache[folder]
+    return out, errors
+
+
+def convergence_plot(histories: dict[str, Any], *, names: dict[str, str] | None = None, selected_id: str | None = None) -> Any:
+    """Bokeh figure: best reward so far vs evaluations, one grey line per run; the
+    selected serve's run in colour with each evaluation's reward (legal: green, not: red)."""
+    fig = figure(height=320, sizing_mode="stretch_width", title="HEBO convergence: best reward so far", x_axis_label="evaluations", y_axis_label="reward F")
+    names = names or {}
+    for sid, h in histories.items():
+        if sid == selected_id or not len(h.reward):
+            continue
+        fig.line(np.arange(1, len(h.reward) + 1), h.best_so_far, color="#a0aec0", line_width=1, alpha=0.8)
+    h = histories.get(selected_id) if selected_id is not None else None
+    if h is not None and len(h.reward):
+        n = np.arange(1, len(h.reward) + 1)
+        fig.scatter(n[h.legal], h.reward[h.legal], size=3, color="#2ca02c", alpha=0.5, legend_label="legal evaluation")
+        fig.scatter(n[~h.legal], h.reward[~h.legal], size=3, color="#d62728", alpha=0.3, legend_label="illegal / failed")
+        fig.line(n, h.best_so_far, color="#1f2937", line_width=2.5, legend_label=f"best so far: {names.get(selected_id, selected_id)}")
+        fig.legend.location = "bottom_right"
+    return fig
+
+
+def convergence_text(histories: dict[str, Any], errors: list[str], *, selected_id: str | None, runs_dir: Path) -> str:
+    """Markdown summary under the convergence plot."""
+    lines = []
+    if not histories:
+        lines.append(f"No HEBO run logs for these serves under `{runs_dir}` (serves from `serve-studio optimize` or `train` link their run folder).")
+    else:
+        runs = {id(h): h for h in histories.values()}
+        best = [float(h.best_so_far[-1]) for h in runs.values() if len(h.reward)]
+        lines.append(f"{len(runs)} runs; final best training reward median {np.median(best):+.3f} (min {min(best):+.3f}, max {max(best):+.3f}).")
+        h = histories.get(selected_id) if selected_id is not None else None
+        if h is not None and len(h.reward):
+            k = int(np.argmax(h.reward))
+            lines.append(
+                f"Selected serve's run `{h.run_dir.name}` ({h.task}, {h.side} toss): {len(h.reward)} evaluations, "
+                f"{int(h.legal.sum())} legal, best {h.reward[k]:+.3f} at evaluation {k + 1}, {h.seconds.sum():.0f} s of evaluation."
+            )
+    lines.extend(f"**Cannot read a run log:** {_text(e)}" for e in errors)
+    return "\n\n".join(lines)
+
+
 def _text(message: str) -> str:
     """Escape a message for Markdown text outside code spans (file paths hold underscores)."""
     return message.replace("\\", "\\\\").replace("_", "\\_").replace("*", "\\*")
@@ -203,11 +282,16 @@ class LibraryDashboard:
     Args:
         library_dir: the serve library folder (may be missing or empty: a message says so).
         studio_url: URL of a running studio (``serve-studio app``), linked from the serve view.
+        runs_dir: folder holding HEBO run folders (convergence plots); runs named by the
+            library outside it are not read.
     """
 
-    def __init__(self, library_dir: str | Path, *, studio_url: str | None = None) -> None:
+    def __init__(self, library_dir: str | Path, *, studio_url: str | None = None, runs_dir: str | Path = "runs") -> None:
         self.library = ServeLibrary(library_dir)
         self.studio_url = studio_url
+        self.runs_dir = Path(runs_dir)
+        self.histories: dict[str, Any] = {}
+        self.run_errors: list[str] = []
         self.entries: list[LibraryEntry] = []
         self.table = library_table([])
         self.error: str | None = None
@@ -241,6 +325,8 @@ class LibraryDashboard:
         self.detail_error = pn.pane.Alert("", alert_type="danger", visible=False, sizing_mode="stretch_width")
         self.joints = pn.pane.Bokeh(None, sizing_mode="stretch_width")
         self.match = pn.pane.Markdown("", sizing_mode="stretch_width")
+        self.convergence = pn.pane.Bokeh(None, sizing_mode="stretch_width")
+        self.convergence_info = pn.pane.Markdown("", sizing_mode="stretch_width")
         self.top_view = pn.pane.Bokeh(None, sizing_mode="stretch_width")
         self.side_view = pn.pane.Bokeh(None, sizing_mode="stretch_width")
         self.studio_link = pn.pane.Markdown("", sizing_mode="stretch_width")
@@ -265,6 +351,9 @@ class LibraryDashboard:
                 sizing_mode="stretch_width",
             ),
             self.joints,
+            pn.pane.Markdown("### Optimization convergence"),
+            self.convergence,
+            self.convergence_info,
             pn.pane.Markdown("### Match statistics"),
             self.match,
             sizing_mode="stretch_width",
@@ -308,6 +397,7 @@ class LibraryDashboard:
             n_legal = int(self.table["legal"].sum())
             self._show_status(f"{len(self.entries)} serves ({n_legal} legal) in `{self.library.index_path}`.", "info")
         self.match.object = self._match_text()
+        self.histories, self.run_errors = run_histories(self.entries, self.runs_dir)
         self._refresh()
 
     def filtered(self) -> pd.DataFrame:
@@ -335,7 +425,11 @@ class LibraryDashboard:
         self._redraw_scatter()
 
     def _redraw_scatter(self) -> None:
-        self.scatter.object = spin_scatter(self.filtered(), axes=self.axes.value, selected_id=self.selected_id)
+        df = self.filtered()
+        self.scatter.object = spin_scatter(df, axes=self.axes.value, selected_id=self.selected_id)
+        shown = {sid: self.histories[sid] for sid in df["id"] if sid in self.histories}
+        self.convergence.object = convergence_plot(shown, names=dict(zip(df["id"], df["name"])), selected_id=self.selected_id)
+        self.convergence_info.object = convergence_text(shown, self.run_errors, selected_id=self.selected_id, runs_dir=self.runs_dir)
 
     def _on_selection(self) -> None:
         df = self.tabulator.value
@@ -390,13 +484,13 @@ class LibraryDashboard:
         return io.StringIO(json.dumps(entry.serve.to_json(), indent=2) + "\n")
 
 
-def build_dashboard(library_dir: str | Path, *, studio_url: str | None = None) -> pn.viewable.Viewable:
+def build_dashboard(library_dir: str | Path, *, studio_url: str | None = None, runs_dir: str | Path = "runs") -> pn.viewable.Viewable:
     """The dashboard layout over ``library_dir`` (for notebooks: display it or ``.servable()``)."""
     pn.extension("tabulator")
-    return LibraryDashboard(library_dir, studio_url=studio_url).layout
+    return LibraryDashboard(library_dir, studio_url=studio_url, runs_dir=runs_dir).layout
 
 
-def run_dashboard(*, library_dir: str | Path, host: str = "127.0.0.1", port: int = 5006, studio_url: str | None = None) -> None:
+def run_dashboard(*, library_dir: str | Path, host: str = "127.0.0.1", port: int = 5006, studio_url: str | None = None, runs_dir: str | Path = "runs") -> None:
     """Serve the dashboard on http://host:port (blocking; localhost only by default).
 
     Each browser session gets its own dashboard reading ``library_dir``. Pass
@@ -406,7 +500,7 @@ def run_dashboard(*, library_dir: str | Path, host: str = "127.0.0.1", port: int
     origins = ["*"] if host in ("0.0.0.0", "::") else [f"{host}:{port}", f"localhost:{port}", f"127.0.0.1:{port}"]
     print(f"serve-studio dashboard: http://{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{port} (library {Path(library_dir)}/{INDEX_NAME})")
     pn.serve(
-        {"/": lambda: LibraryDashboard(library_dir, studio_url=studio_url).layout},
+        {"/": lambda: LibraryDashboard(library_dir, studio_url=studio_url, runs_dir=runs_dir).layout},
         address=host,
         port=port,
         show=False,

@@ -61,6 +61,8 @@ __all__ = [
     "FinalCandidate",
     "OptimizationResult",
     "EvaluatorPool",
+    "RunHistory",
+    "load_run_history",
     "bounds_for_toss",
     "optimize_serve",
     "RUN_SCHEMA",
@@ -381,6 +383,77 @@ def _read_jsonl(path: Path) -> list[EvaluationRecord]:
         if r.index != i:
             raise DataFileError(str(path), f"record {i} has index {r.index}: the file is not one run's log")
     return good
+
+
+@dataclass(frozen=True)
+class RunHistory:
+    """What an optimization run folder holds, for convergence plots (``run.json`` +
+    ``evaluations.jsonl``)."""
+
+    run_dir: Path
+    """The run folder."""
+    task: str
+    """Reward task of the run."""
+    side: str
+    """Toss side of the run."""
+    reward: npt.NDArray[np.float64]
+    """Reward F per evaluation (n,), in evaluation order (seeds first) [-]."""
+    legal: npt.NDArray[np.bool_]
+    """Legal verdict per evaluation (n,)."""
+    batch: npt.NDArray[np.int64]
+    """Batch per evaluation (n,): -1 for seeds, else the HEBO iteration."""
+    seconds: npt.NDArray[np.float64]
+    """Worker wall time per evaluation (n,) [s]."""
+
+    @property
+    def best_so_far(self) -> npt.NDArray[np.float64]:
+        """Running maximum of :attr:`reward` (n,)."""
+        return np.maximum.accumulate(self.reward) if len(self.reward) else self.reward
+
+    @property
+    def best_legal_so_far(self) -> npt.NDArray[np.float64]:
+        """Running maximum over the legal evaluations (n,); -inf before the first legal one."""
+        r = np.where(self.legal, self.reward, -np.inf)
+        return np.maximum.accumulate(r) if len(r) else r
+
+
+def load_run_history(run_dir: str | Path) -> RunHistory:
+    """Read an optimization run folder (as written by :func:`optimize_serve`).
+
+    Raises:
+        DataFileError: ``run.json`` or ``evaluations.jsonl`` missing or malformed (file and
+            line named). A torn last line (interrupted run) is ignored, not an error.
+    """
+    run_dir = Path(run_dir)
+    meta_path = run_dir / "run.json"
+    if not meta_path.is_file():
+        raise DataFileError(str(meta_path), "missing: not an optimization run folder")
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise DataFileError(str(meta_path), f"not readable JSON ({exc})") from exc
+    if not isinstance(meta, dict) or meta.get("schema") != RUN_SCHEMA:
+        raise DataFileError(str(meta_path), f"schema must be {RUN_SCHEMA!r}")
+    log_path = run_dir / "evaluations.jsonl"
+    records: list[EvaluationRecord] = []
+    if log_path.is_file():
+        raw = log_path.read_bytes()
+        complete = raw[: raw.rfind(b"\n") + 1]  # a torn last line belongs to a live or killed run
+        for k, line in enumerate(complete.split(b"\n")[:-1]):
+            if not line.strip():
+                continue
+            try:
+                rec = EvaluationRecord.from_json(json.loads(line))
+                if not (isinstance(rec.reward, (int, float)) and math.isfinite(rec.reward)):
+                    raise ValueError(f"reward {rec.reward!r} is not a finite number")
+            except (ValueError, KeyError, TypeError) as exc:
+                raise DataFileError(str(log_path), f"line {k + 1}: not an evaluation record ({exc})") from exc
+            records.append(rec)
+    return RunHistory(
+        run_dir=run_dir, task=str(meta.get("task", "?")), side=str(meta.get("side", "?")),
+        reward=np.array([r.reward for r in records], dtype=float), legal=np.array([bool(r.legal) for r in records], dtype=bool),
+        batch=np.array([int(r.batch) for r in records], dtype=np.int64), seconds=np.array([float(r.seconds) for r in records], dtype=float),
+    )  # fmt: skip
 
 
 class _Log:

@@ -230,3 +230,43 @@ def test_match_statistics_from_the_log(library: Path, tmp_path: Path) -> None:
     (folder / MATCH_LOG).write_text('{"time": "x"}\n')
     dash.reload()
     assert "Cannot read the match log" in dash.match.object and "matches.jsonl" in dash.match.object
+
+
+def test_convergence_of_linked_runs_inside_the_runs_folder_only(library: Path, tmp_path: Path) -> None:
+    import shutil
+
+    from studio.hebo_adapter import HeboConfig
+    from studio.optimizer import Outcome, optimize_serve
+
+    def fake(serve, tosses, rng):  # type: ignore[no-untyped-def]
+        r = -float(np.sum((serve.params.to_vector() - 0.5) ** 2)) / 100.0
+        return Outcome(r, r > -1.0, "legal" if r > -1.0 else "illegal")
+
+    cheap = HeboConfig(rand_sample=4, es_pop=8, es_iters=2, gp_epochs=5, max_train=12, keep_best=4)
+    runs = tmp_path / "runs"
+    for name in ("a", "b"):
+        optimize_serve(side="right", task="backspin", run_dir=runs / name, iterations=3, population=4, workers=1, config=cheap, evaluate=fake, top_k=1, final_tosses=2)
+    outside = tmp_path / "elsewhere"
+    shutil.copytree(runs / "a", outside)
+    folder = tmp_path / "lib"
+    shutil.copytree(library, folder)
+    doc = json.loads((folder / INDEX_NAME).read_text())
+    ids = [s["id"] for s in doc["serves"]]
+    for s, run in zip(doc["serves"], (runs / "a", runs / "b", outside)):
+        s["provenance"] = {"kind": "hebo", "run": str(run), "seed": 0}
+    (folder / INDEX_NAME).write_text(json.dumps(doc))
+
+    dash = LibraryDashboard(folder, runs_dir=runs)
+    assert set(dash.histories) == set(ids[:2])  # the run outside the runs folder is not read
+    assert len(dash.histories[ids[0]].reward) == 12
+    dash.tabulator.selection = [list(dash.tabulator.value["id"]).index(ids[0])]
+    fig = dash.convergence.object
+    lines = [r for r in fig.renderers if type(r.glyph).__name__ == "Line"]
+    assert len(lines) == 2  # the other run in grey, the selected one highlighted
+    assert "2 runs" in dash.convergence_info.object and "12 evaluations" in dash.convergence_info.object
+    # a corrupt run log is reported with its file, the rest still shows
+    log = runs / "b" / "evaluations.jsonl"
+    log.write_text("{broken\n" + log.read_text())
+    dash.reload()
+    assert set(dash.histories) == {ids[0]} and "evaluations.jsonl" in dash.convergence_info.object.replace("\\_", "_")
+    assert dash.layout.get_root() is not None

@@ -252,3 +252,27 @@ def test_hebo_prints_go_to_the_logger(capsys: pytest.CaptureFixture[str], caplog
         a.suggest(2)
     assert capsys.readouterr().out == ""
     assert any("jitter = 1e-06" in r.getMessage() for r in caplog.records)
+
+
+def test_run_history_reads_the_log_and_flags_corrupt_lines(tmp_path: Path) -> None:
+    from studio.errors import DataFileError
+    from studio.optimizer import load_run_history
+
+    res = run(tmp_path / "r")
+    h = load_run_history(tmp_path / "r")
+    assert (h.task, h.side) == ("topspin_velocity", "right")
+    assert len(h.reward) == res.evaluations == 2 + 3 * 4
+    np.testing.assert_allclose(h.reward, res.history)
+    np.testing.assert_allclose(h.best_so_far, np.maximum.accumulate(res.history))
+    assert list(h.batch[:2]) == [-1, -1] and h.batch[-1] == 2
+    assert np.all(h.best_legal_so_far[h.legal] >= h.reward[h.legal])
+    log = tmp_path / "r" / "evaluations.jsonl"
+    log.write_bytes(log.read_bytes() + b'{"index": 14, "batch"')  # torn tail of a live run: ignored
+    assert len(load_run_history(tmp_path / "r").reward) == 14
+    lines = log.read_text().splitlines()
+    lines[3] = '{"index": 3, "reward": "high"}'
+    log.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataFileError, match=r"evaluations.jsonl.*line 4"):
+        load_run_history(tmp_path / "r")
+    with pytest.raises(DataFileError, match="run.json"):
+        load_run_history(tmp_path)
