@@ -77,9 +77,11 @@ class StudioApp:
         context: robot, tosses, planner and models shared by all evaluations.
         serves_dir: folder of hand-designed serves (read, and written by "save as seed").
         library_dir: serve library folder for "export".
+        watch_open_requests: poll the library's ``open-request.json`` (the dashboard's
+            "Open in studio") twice a second; otherwise call :meth:`poll_open_request`.
     """
 
-    def __init__(self, server: Any, *, context: EvaluationContext, serves_dir: Path, library_dir: Path) -> None:
+    def __init__(self, server: Any, *, context: EvaluationContext, serves_dir: Path, library_dir: Path, watch_open_requests: bool = True) -> None:
         self.server = server
         self.context = context
         self.serves_dir = serves_dir
@@ -102,6 +104,11 @@ class StudioApp:
         server.initial_camera.position = (-3.9, -2.4, 1.3)
         server.initial_camera.look_at = (-0.8, 0.0, 0.0)
         threading.Thread(target=self._playback_loop, name="studio-playback", daemon=True).start()
+        self._open_nonce: str | None = None
+        self._open_lock = threading.Lock()
+        self.poll_open_request(act=False)  # a request older than this studio is not acted on
+        if watch_open_requests:
+            threading.Thread(target=self._open_request_loop, name="studio-open-requests", daemon=True).start()
 
     # -- GUI construction -----------------------------------------------------------
 
@@ -339,6 +346,48 @@ class StudioApp:
             self._message(f"Loaded library serve `{entry.id}`.")
         except (StudioError, KeyError) as err:
             self._message(f"**Cannot load library serve:** {err}")
+
+    def poll_open_request(self, *, act: bool = True) -> bool:
+        """Load the serve a dashboard asked for (``open-request.json`` in the library
+        folder, :func:`studio.library.request_open`), once per request. True if loaded."""
+        with self._open_lock:
+            return self._poll_open_request(act)
+
+    def _poll_open_request(self, act: bool) -> bool:
+        from studio.library import ServeLibrary, read_open_request
+
+        try:
+            req = read_open_request(self.library_dir)
+        except StudioError as err:
+            if act:
+                self._message(f"**Open request ignored:** {err}")
+            return False
+        if req is None or req.nonce == self._open_nonce:
+            return False
+        self._open_nonce = req.nonce
+        if not act:
+            return False
+        try:
+            entry = ServeLibrary(self.library_dir).get(req.id)
+        except StudioError as err:
+            self._message(f"**Cannot open library serve** `{req.id}`: {err}")
+            return False
+        self._refresh_library()
+        label = next((k for k, v in self._library_ids.items() if v == entry.id), None)
+        self._suspend = True
+        try:
+            if label is not None:
+                self.library_pick.value = label
+        finally:
+            self._suspend = False
+        self.load(entry.serve)
+        self._message(f"Opened library serve `{entry.id}` ({entry.data['name']}) from the dashboard.")
+        return True
+
+    def _open_request_loop(self) -> None:
+        while True:
+            time.sleep(0.5)
+            self.poll_open_request()
 
     def _export(self) -> None:
         from studio.library import ServeLibrary

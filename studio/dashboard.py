@@ -8,8 +8,10 @@ What it shows:
   vs total spin, or topspin vs sidespin, points coloured by :func:`spin_cluster`;
 - the selected serve: joint commands ``u(t)`` of the 8 joints and the predicted ball path
   seen from above (x-y) and from the side (x-z), with the table and the net drawn;
-- a link to the studio (if its URL is known) and a download of the serve JSON that the
-  studio (and ``serve-studio evaluate``) load;
+- "Open in studio": asks a studio running on the same library folder to load the serve
+  into its controls (:func:`studio.library.request_open`) and brings up the studio's
+  browser tab (if its URL is known); a download of the serve JSON that the studio (and
+  ``serve-studio evaluate``) load;
 - a reload button that re-reads the library folder.
 
 Match statistics (the paper's Table I and a per-serve table) come from the library's
@@ -331,6 +333,10 @@ class LibraryDashboard:
         self.side_view = pn.pane.Bokeh(None, sizing_mode="stretch_width")
         self.studio_link = pn.pane.Markdown("", sizing_mode="stretch_width")
         self.download = pn.widgets.FileDownload(callback=self._serve_json, filename="serve.json", label="Download serve JSON", color="success", width=220, disabled=True)
+        self.open_button = pn.widgets.Button(label="Open in studio", color="primary", width=160, disabled=True)
+        self.open_button.on_click(lambda _event: self.open_in_studio())
+        if studio_url:  # the browser side: bring up the studio tab (named, so it is reused)
+            self.open_button.js_on_click(args={"url": studio_url}, code="window.open(url, 'serve-studio')")
         self.selected_id: str | None = None
 
         self.reload_button.on_click(lambda _event: self.reload())
@@ -347,7 +353,7 @@ class LibraryDashboard:
             self.tabulator,
             pn.Row(
                 pn.Column(self.axes, self.scatter, sizing_mode="stretch_width"),
-                pn.Column(self.detail_title, self.detail_error, pn.Row(self.download, self.studio_link, sizing_mode="stretch_width"), self.top_view, self.side_view, sizing_mode="stretch_width"),
+                pn.Column(self.detail_title, self.detail_error, pn.Row(self.open_button, self.download, self.studio_link, sizing_mode="stretch_width"), self.top_view, self.side_view, sizing_mode="stretch_width"),
                 sizing_mode="stretch_width",
             ),
             self.joints,
@@ -450,6 +456,7 @@ class LibraryDashboard:
             for pane in (self.joints, self.top_view, self.side_view):
                 pane.object = None
             self.download.disabled = True
+            self.open_button.disabled = True
             self.studio_link.object = ""
             return
         d = entry.data
@@ -459,10 +466,12 @@ class LibraryDashboard:
         self.detail_title.object = f"### {_text(str(d['name']))}\n`{entry.id}` · {d['side']} toss · task {_text(str(d.get('task')))} · {verdict} · reward {float(d['reward']):.3f} · {entry_cluster(d)} · {net_text}"
         self.download.filename = f"{entry.id}.json"
         self.download.disabled = False
-        if self.studio_url:
-            self.studio_link.object = f"[Open the studio]({self.studio_url}) and load the downloaded serve JSON there (Serve tab, *Upload JSON*): the studio loads serves from files."
-        else:
-            self.studio_link.object = "Load the downloaded serve JSON in the studio (`serve-studio app`, Serve tab, *Upload JSON*)."
+        self.open_button.disabled = False
+        where = f"the studio at [{self.studio_url}]({self.studio_url})" if self.studio_url else "the studio"
+        self.studio_link.object = (
+            f"*Open in studio* loads this serve into the controls of {where} when it runs on this library "
+            f"(`serve-studio app --library {self.library.folder}`); otherwise upload the downloaded JSON there."
+        )
         try:
             arrays = entry.arrays()
         except StudioError as err:
@@ -475,6 +484,21 @@ class LibraryDashboard:
         self.joints.object = joint_plot(arrays)
         self.top_view.object = ball_path_plot(arrays, view="top")
         self.side_view.object = ball_path_plot(arrays, view="side")
+
+    def open_in_studio(self) -> bool:
+        """Ask a studio running on this library to load the selected serve
+        (:func:`studio.library.request_open`); the outcome goes to the status line."""
+        from studio.library import request_open
+
+        if self.selected_id is None:
+            return False
+        try:
+            request_open(self.library.folder, self.selected_id)
+        except StudioError as err:
+            self._show_status(f"**Cannot ask the studio to open the serve:** {_text(str(err))}", "danger")
+            return False
+        self._show_status(f"Asked the studio to open `{self.selected_id}` (a studio running on `{self.library.folder}` loads it within a second).", "success")
+        return True
 
     def _serve_json(self) -> io.StringIO:
         """The selected serve as a serve JSON file (``serve-studio/serve@1``)."""

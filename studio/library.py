@@ -251,3 +251,66 @@ class ServeLibrary:
         doc = {"schema": LIBRARY_SCHEMA, "serves": [e.data for e in entries] + [entry]}
         _atomic_write(self.index_path, (json.dumps(doc, indent=2) + "\n").encode("utf-8"))
         return LibraryEntry(entry, self.folder)
+
+
+# -- "open in the studio" requests --------------------------------------------------------
+
+OPEN_REQUEST_NAME = "open-request.json"
+"""File in a library folder through which the dashboard asks a running studio (same
+library) to load a serve into its controls."""
+OPEN_REQUEST_SCHEMA = "serve-studio/open-request@1"
+"""Schema tag of :data:`OPEN_REQUEST_NAME`."""
+
+
+@dataclass(frozen=True, slots=True)
+class OpenRequest:
+    """A request to open serve ``id`` of the library in the studio."""
+
+    id: str
+    """Library serve id."""
+    nonce: str
+    """Changes with every request (a studio acts on each nonce once)."""
+
+
+def request_open(folder: str | Path, serve_id: str) -> OpenRequest:
+    """Ask a studio running on library ``folder`` to load serve ``serve_id`` (atomic write).
+
+    Raises:
+        InvalidInputError: malformed id, or no such serve in the library.
+        DataFileError: the library index is corrupt.
+    """
+    if not isinstance(serve_id, str) or not _ID.match(serve_id):
+        raise InvalidInputError(f"open request: bad serve id {serve_id!r}")
+    library = ServeLibrary(folder)
+    library.get(serve_id)  # must exist
+    req = OpenRequest(serve_id, uuid.uuid4().hex)
+    doc = {"schema": OPEN_REQUEST_SCHEMA, "id": req.id, "nonce": req.nonce, "requested": datetime.now(UTC).isoformat(timespec="seconds")}
+    _atomic_write(library.folder / OPEN_REQUEST_NAME, (json.dumps(doc) + "\n").encode("utf-8"))
+    return req
+
+
+def read_open_request(folder: str | Path) -> OpenRequest | None:
+    """The current open request of library ``folder`` (None if there is none).
+
+    Raises:
+        DataFileError: the request file is malformed (file and field named).
+    """
+    path = Path(folder) / OPEN_REQUEST_NAME
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise DataFileError(str(path), f"cannot read ({exc})") from exc
+    try:
+        doc = json.loads(raw)
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise DataFileError(str(path), f"not valid JSON ({exc})") from exc
+    if not isinstance(doc, dict) or doc.get("schema") != OPEN_REQUEST_SCHEMA:
+        raise DataFileError(str(path), f"schema must be {OPEN_REQUEST_SCHEMA!r}")
+    sid, nonce = doc.get("id"), doc.get("nonce")
+    if not isinstance(sid, str) or not _ID.match(sid):
+        raise DataFileError(str(path), f"id: bad serve id {sid!r}")
+    if not isinstance(nonce, str) or not (0 < len(nonce) <= 64):
+        raise DataFileError(str(path), "nonce: must be a non-empty string")
+    return OpenRequest(sid, nonce)

@@ -38,7 +38,7 @@ def test_safe_name_and_inside(tmp_path: Path) -> None:
 def app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[StudioApp]:
     folder = tmp_path_factory.mktemp("studio")
     server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
-    studio = StudioApp(server, context=EvaluationContext.default(), serves_dir=folder / "serves", library_dir=folder / "lib")
+    studio = StudioApp(server, context=EvaluationContext.default(), serves_dir=folder / "serves", library_dir=folder / "lib", watch_open_requests=False)
     assert studio.worker.wait_idle(300)
     yield studio
     studio.worker.close()
@@ -110,3 +110,41 @@ def test_export_then_load_library_serve(app: StudioApp) -> None:
     app._load_library_serve()
     assert "Loaded library serve" in app.message_md.content
     assert app.controls().serve.params.velocity[0] == pytest.approx(exported.velocity[0], abs=0.051)
+
+
+def test_open_request_from_the_dashboard_loads_the_serve_once(app: StudioApp) -> None:
+    from studio.library import OPEN_REQUEST_NAME, ServeLibrary, request_open
+
+    app._export()  # make sure the library holds a serve
+    entries = ServeLibrary(app.library_dir).entries()
+    target = entries[-1]
+    app._suspend = True
+    app.vx.value = app.vx.value + 0.7  # move away from it
+    app._suspend = False
+    app._changed()
+    assert not app.poll_open_request()  # no new request: nothing happens
+    request_open(app.library_dir, target.id)
+    assert app.poll_open_request()
+    assert target.id in app.message_md.content and "Opened library serve" in app.message_md.content
+    assert app.controls().serve.params.velocity[0] == pytest.approx(target.serve.params.velocity[0], abs=0.051)
+    assert app.library_pick.value.endswith(f"[{target.id}]")
+    assert not app.poll_open_request()  # each request is acted on once
+    assert app.worker.wait_idle(120)
+    # a corrupt request file is reported, not raised
+    (app.library_dir / OPEN_REQUEST_NAME).write_text("{not json")
+    assert not app.poll_open_request()
+    assert "Open request ignored" in app.message_md.content and OPEN_REQUEST_NAME in app.message_md.content
+    with pytest.raises(InvalidInputError):
+        request_open(app.library_dir, "no-such-serve")
+
+
+def test_dashboard_open_in_studio_reaches_the_studio(app: StudioApp) -> None:
+    from studio.dashboard import LibraryDashboard
+
+    app._export()
+    dash = LibraryDashboard(app.library_dir, studio_url="http://127.0.0.1:8080")
+    first = str(dash.tabulator.value["id"].iloc[0])
+    assert dash.selected_id == first and not dash.open_button.disabled
+    assert dash.open_in_studio() and dash.status.alert_type == "success"
+    assert app.poll_open_request() and first in app.message_md.content
+    assert app.worker.wait_idle(120)
