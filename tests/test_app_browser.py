@@ -132,3 +132,22 @@ def test_export_puts_the_serve_in_the_library(studio, page) -> None:  # type: ig
     assert entry.arrays()["u"].shape[1] == 8
     page.get_by_text("Exported").first.wait_for(timeout=10_000)
     page.screenshot(path=str(ARTIFACTS / "studio_exported.png"))
+
+
+def test_dashboard_open_in_studio_loads_the_serve_in_the_page(studio, page) -> None:  # type: ignore[no-untyped-def]
+    from studio.dashboard import LibraryDashboard
+
+    app, url, serves = studio
+    page.get_by_role("tab", name="Serve").click()
+    if not (serves / "library" / "index.json").exists():
+        page.get_by_role("button", name="Export to library").click()
+        _wait(lambda: (serves / "library" / "index.json").exists(), 30, "library export")
+    dash = LibraryDashboard(serves / "library", studio_url=url)
+    entry = dash.entry(dash.selected_id)
+    assert entry is not None
+    _set_number(page, "v_y", round(entry.serve.params.velocity[1] + 0.8, 2))  # move away from the library serve
+    _wait(lambda: app.last is not None and app.last.serve.params.velocity[1] == pytest.approx(entry.serve.params.velocity[1] + 0.8, abs=0.051), 60, "slider change")
+    assert dash.open_in_studio()  # what the dashboard's "Open in studio" button does on the server side
+    page.get_by_text("Opened library serve").first.wait_for(timeout=30_000)  # the studio's watcher loaded it
+    _wait(lambda: app.last is not None and app.last.serve.params.velocity[1] == pytest.approx(entry.serve.params.velocity[1], abs=0.051), 60, "re-plan of the opened serve")
+    page.screenshot(path=str(ARTIFACTS / "studio_opened_from_dashboard.png"))
