@@ -111,72 +111,33 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     """Train ``count`` serves for a task (one HEBO run each, seeds seed0, seed0+1, ...),
-    export each chosen serve to the library, and print a Table II-like summary."""
-    import json
-    import time
+    export each legal chosen serve to the library, and print a Table II-like summary."""
     from pathlib import Path
 
-    import numpy as np
+    from studio.serve import load_serve
+    from studio.training import TrainConfig, TrainedServe, summary_table, train_serves
 
-    from studio.evaluate import EvaluationContext, evaluate_serve
-    from studio.library import ServeLibrary
-    from studio.optimizer import optimize_serve
-    from studio.reward import task_weights
-    from studio.serve import HandServe, load_serve
+    cfg = TrainConfig(
+        task=args.task, count=args.count, side=args.side, iterations=args.iterations, population=args.population, tosses=args.tosses,
+        seed=args.seed, workers=args.workers, seeds=tuple(load_serve(p) for p in args.seeds), runs_dir=Path(args.runs or f"runs/train-{args.task}"),
+    )  # fmt: skip
 
-    weights = task_weights(args.task)
-    seeds = [load_serve(p) for p in args.seeds]
-    library = ServeLibrary(args.library)
-    runs = Path(args.runs or f"runs/train-{args.task}")
-    context = EvaluationContext.default()
-    rows: list[dict[str, float]] = []
-    sides = ["right", "left"] if args.side == "both" else [args.side]
-    for i in range(args.count):
-        side = sides[i % len(sides)]
-        run_dir = runs / f"{i:03d}-{side}-seed{args.seed + i}"
-        done = run_dir / "exported.json"
-        if done.exists():  # finished in an earlier, interrupted invocation
-            rows.append(json.loads(done.read_text())["row"])
-            print(f"[{i + 1}/{args.count}] {run_dir.name}: already trained")
-            continue
-        start = time.perf_counter()
-        result = optimize_serve(
-            side=side,
-            task=args.task,
-            run_dir=run_dir,
-            seeds=[s for s in seeds if s.side == side],
-            iterations=args.iterations,
-            population=args.population,
-            tosses=args.tosses,
-            seed=args.seed + i,
-            workers=args.workers,
-            resume=(run_dir / "evaluations.jsonl").exists(),
-        )
-        if result.best is None:
-            print(f"[{i + 1}/{args.count}] {run_dir.name}: nothing evaluated")
-            continue
-        best = HandServe(name=f"{args.task} {side} {args.seed + i}", side=side, params=result.best.params, task=args.task)
-        ev = evaluate_serve(best, context, task=args.task)
-        row: dict[str, float] = {"legal": float(ev.legal), "reward": float(ev.reward.total)}
-        sb = ev.metrics.second_bounce if ev.metrics else None
-        if sb is not None:
-            row.update(
-                aim_mm=1000 * float(np.hypot(sb["p"][0] - weights.target[0], sb["p"][1] - weights.target[1])),
-                vx=sb["v"][0], vy=sb["v"][1], vz=sb["v"][2], cork=sb["cork"], topback=sb["topspin"], side=sb["sidespin"],
-            )
-        # Only legal serves enter the library; illegal results stay in their run folder.
-        entry_id = library.add(ev, provenance={"kind": "hebo", "run": str(run_dir), "seed": args.seed + i}, task=args.task).id if ev.legal else None
-        done.write_text(json.dumps({"id": entry_id, "row": row}))
-        rows.append(row)
-        verdict = f"exported as {entry_id}" if entry_id else f"not legal ({ev.reason}), not exported"
-        print(f"[{i + 1}/{args.count}] {run_dir.name}: reward {ev.reward.total:+.3f}, {verdict} ({time.perf_counter() - start:.0f} s)")
-    legal = [r for r in rows if r.get("legal") and "vx" in r]
-    print(f"\n{args.task}: {len(legal)} legal of {len(rows)} trained serves (sim, second bounce; mean ± std)")
-    cols = ["aim_mm", "vx", "vy", "vz", "cork", "topback", "side"] if args.task == "aiming" else ["vx", "vy", "vz", "cork", "topback", "side"]
-    heads = {"aim_mm": "aim error [mm]", "vx": "v_x [m/s]", "vy": "v_y [m/s]", "vz": "v_z [m/s]", "cork": "cork [rad/s]", "topback": "top/back [rad/s]", "side": "side [rad/s]"}
-    print(" | ".join(heads[c] for c in cols))
-    if legal:
-        print(" | ".join(f"{np.mean([r[c] for r in legal]):.1f} ± {np.std([r[c] for r in legal]):.1f}" for c in cols))
+    def progress(r: TrainedServe, total: int) -> None:
+        if r.reason == "already trained":
+            print(f"[{r.index + 1}/{total}] {r.run_dir.name}: already trained", flush=True)
+            return
+        verdict = f"exported as {r.entry_id}" if r.entry_id else f"not legal ({r.reason}), not exported"
+        print(f"[{r.index + 1}/{total}] {r.run_dir.name}: reward {r.reward:+.3f}, {verdict} ({r.seconds:.0f} s)", flush=True)
+
+    where = f"on the Ray cluster {args.ray}" if args.ray else f"locally, {args.workers} evaluation processes per run"
+    print(f"training {cfg.count} {cfg.task} serves {where}; run folders in {cfg.runs_dir}", flush=True)
+    try:
+        results = train_serves(cfg, args.library, ray_address=args.ray, progress=progress)
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: finished runs and every logged evaluation are in {cfg.runs_dir}; run the same command again to resume")
+        return 130
+    print()
+    print(summary_table(results, cfg.task))
     return 0
 
 
@@ -369,6 +330,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--workers", type=int, default=2, help="evaluation processes per run")
     p.add_argument("--seed", type=int, default=0, help="seed of the first run (run i uses seed + i)")
     p.add_argument("--runs", default=None, help="folder of the run folders (default runs/train-<task>); rerun to resume")
+    p.add_argument("--ray", default=None, metavar="ADDRESS", help="run the runs as tasks on a Ray cluster (ray.init address, e.g. auto or ray://host:10001; 'local' starts a local instance)")
     handlers["train"] = _cmd_train
 
     p = sub.add_parser("dashboard", help="serve the Panel dashboard of a serve library")

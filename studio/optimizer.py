@@ -496,6 +496,7 @@ def optimize_serve(
     final_tosses: int = 10,
     evaluate: EvaluateFn | None = None,
     ipopt_fallback: bool = False,
+    on_record: Callable[[dict[str, Any]], None] | None = None,
 ) -> OptimizationResult:
     """Optimize a serve's genome for ``task`` on the ``side`` toss with HEBO (maximize F).
 
@@ -525,6 +526,8 @@ def optimize_serve(
             run in this process (tests).
         ipopt_fallback: let the strike planner fall back to IPOPT when its SQP misses
             (off by default in training: :meth:`EvaluationContext.for_training`).
+        on_record: called with each new evaluation record (the JSON object of its
+            ``evaluations.jsonl`` line) right after it is logged (Ray streaming).
     """
     t_start = time.perf_counter()
     if iterations < 0 or population < 1:
@@ -540,7 +543,7 @@ def optimize_serve(
         return _optimize(
             pool, t_start, side=side, task=task, run_dir=run_dir, context=context, seeds=seeds, iterations=iterations, population=population,
             tosses=tosses, min_legal_fraction=min_legal_fraction, seed=seed, progress=progress, stop=stop, bounds=bounds, config=config,
-            resume=resume, top_k=top_k, final_tosses=final_tosses, evaluate=evaluate, ipopt_fallback=ipopt_fallback,
+            resume=resume, top_k=top_k, final_tosses=final_tosses, evaluate=evaluate, ipopt_fallback=ipopt_fallback, on_record=on_record,
         )  # fmt: skip
     finally:
         pool.close()
@@ -550,6 +553,7 @@ def _optimize(
     pool: EvaluatorPool, t_start: float, *, side: TossSide, task: str, run_dir: Path, context: Any, seeds: Sequence[HandServe], iterations: int,
     population: int, tosses: int, min_legal_fraction: float, seed: int, progress: ProgressFn | None, stop: threading.Event | None,
     bounds: GenomeBounds | None, config: HeboConfig, resume: bool, top_k: int, final_tosses: int, evaluate: EvaluateFn | None, ipopt_fallback: bool,
+    on_record: Callable[[dict[str, Any]], None] | None,
 ) -> OptimizationResult:  # fmt: skip
     if bounds is None:
         if context is not None:
@@ -626,6 +630,8 @@ def _optimize(
                 status=out.status, failed_check=out.failed_check, legal_fraction=float(out.legal_fraction), seconds=float(sec),
             )  # fmt: skip
             log.write(rec)
+            if on_record is not None:
+                on_record(asdict(rec))
             records.append(rec)
             opt.observe(Z[i : i + 1], np.array([-reward]))
             timings["evaluate_cpu"] += sec

@@ -1,0 +1,79 @@
+"""Training many serves: run layout, summary beside the paper's Table II, local and Ray runs, resume."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from studio.errors import InvalidInputError
+from studio.library import ServeLibrary
+from studio.training import PAPER_TABLE_II_SIM, TrainConfig, TrainedServe, summary_table, train_serves
+
+
+def test_jobs_alternate_sides_and_seeds(tmp_path: Path) -> None:
+    cfg = TrainConfig(task="backspin", count=3, side="both", seed=7, runs_dir=tmp_path)
+    assert [(i, side, seed, d.name) for i, side, seed, d in cfg.jobs()] == [
+        (0, "right", 7, "000-right-seed7"), (1, "left", 8, "001-left-seed8"), (2, "right", 9, "002-right-seed9"),
+    ]  # fmt: skip
+    assert {side for _, side, _, _ in TrainConfig(task="backspin", count=2, side="left").jobs()} == {"left"}
+
+
+@pytest.mark.parametrize("kw", [{"task": "nope"}, {"task": "aiming", "count": 0}, {"task": "aiming", "side": "up"}, {"task": "aiming", "tosses": 0}])
+def test_bad_configuration_is_rejected(kw: dict) -> None:
+    with pytest.raises(InvalidInputError):
+        TrainConfig(**kw)
+
+
+def test_summary_table_statistics_and_paper_row(tmp_path: Path) -> None:
+    rows = [{"aim_mm": 100.0, "vx": 3.0, "vy": -1.0, "vz": 2.0, "cork": 10.0, "topback": 100.0, "side": -50.0},
+            {"aim_mm": 300.0, "vx": 5.0, "vy": 1.0, "vz": 2.0, "cork": 30.0, "topback": 300.0, "side": 50.0}]  # fmt: skip
+    results = [TrainedServe(i, tmp_path, True, 1.0, r, f"id{i}", 1.0) for i, r in enumerate(rows)]
+    results.append(TrainedServe(2, tmp_path, False, -3.0, {}, None, 1.0, "net"))
+    text = summary_table(results, "aiming")
+    assert "2 legal of 3 trained serves" in text
+    ours = next(line for line in text.splitlines() if line.startswith("| this run"))
+    assert "| 2 |" in ours and "200.0 ± 100.0" in ours and "4.0 ± 1.0" in ours and "200.0 ± 100.0" in ours
+    paper = next(line for line in text.splitlines() if line.startswith("| paper"))
+    assert "166.0 ± 285.0" in paper and "2.6 ± 1.2" in paper
+    assert "aim error" not in summary_table(results, "backspin")  # aim error only for the aiming task
+    assert set(PAPER_TABLE_II_SIM) == {"aiming", "topspin_velocity", "backspin", "sidespin"}
+
+
+def _cfg(tmp_path: Path, iterations: int) -> TrainConfig:
+    from studio.serve import load_serve
+
+    seed_serve = load_serve(Path(__file__).resolve().parent.parent / "examples" / "serves" / "topspin_right.json")
+    return TrainConfig(task="topspin_velocity", count=2, side="right", iterations=iterations, population=2, tosses=1, workers=1, seeds=(seed_serve,), runs_dir=tmp_path / "runs")
+
+
+def test_training_on_ray_streams_records_resumes_and_exports(tmp_path: Path) -> None:
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, object_store_memory=80 * 1024 * 1024)
+    try:
+        # run 0 was started locally and interrupted after its first batch: a partial log, not exported
+        cfg1 = _cfg(tmp_path, iterations=1)
+        from studio.training import _run_job
+
+        run0 = cfg1.jobs()[0][3]
+        _run_job("right", 0, cfg1, run0, workers=1)
+        assert len((run0 / "evaluations.jsonl").read_text().splitlines()) == 3  # the seed + 2 suggestions
+        cfg = _cfg(tmp_path, iterations=2)
+        done: list[int] = []
+        results = train_serves(cfg, tmp_path / "lib", ray_address="auto", progress=lambda r, n: done.append(r.index))
+        assert sorted(done) == [0, 1] and len(results) == 2
+        for r in results:
+            lines = [json.loads(x) for x in (r.run_dir / "evaluations.jsonl").read_text().splitlines()]
+            assert [x["index"] for x in lines] == list(range(5))  # seed + 2 x 2, nothing repeated
+            assert json.loads((r.run_dir / "run.json").read_text())["task"] == "topspin_velocity"
+            assert (r.run_dir / "exported.json").exists()
+        first = [json.loads(x) for x in (results[0].run_dir / "evaluations.jsonl").read_text().splitlines()]
+        assert [x["batch"] for x in first] == [-1, 0, 0, 1, 1]  # the local batch kept, the Ray task went on
+        entries = ServeLibrary(tmp_path / "lib").entries()
+        assert len(entries) == sum(r.legal for r in results)
+        assert all(e.data["provenance"]["kind"] == "hebo" for e in entries)
+        again = train_serves(cfg, tmp_path / "lib", ray_address="auto")
+        assert all(r.reason == "already trained" for r in again)
+    finally:
+        ray.shutdown()
