@@ -77,7 +77,11 @@ class HeboConfig:
     """Observations before the GP is used (``None``: dimension + 1, HEBO's default); the
     first suggestions are scrambled Sobol points."""
     torch_threads: int = 1
-    """Torch threads during a suggestion (HEBO forces 1 at import); restored afterwards."""
+    """Torch threads during a suggestion (HEBO forces 1 at import); restored afterwards.
+    Alone, two threads make a batch of 20 at 256 points 20 % cheaper (0.48 s against
+    0.60 s on 2 cores), but the optimizer suggests while its workers evaluate
+    (``overlap``): there two threads oversubscribe the cores and the 2000-evaluation
+    run took 111.6 s instead of 79.6 s."""
     vector_nsga: bool = True
     """Run NSGA-II on plain float vectors (pymoo's SBX/PM operators, numpy duplicate
     elimination) instead of HEBO's mixed-variable setup (the same real-valued operators
@@ -97,8 +101,8 @@ class HeboConfig:
 
     @classmethod
     def hebo_defaults(cls) -> HeboConfig:
-        """HEBO 0.3.6's own settings (no cap, NSGA-II 100 x 100, 100 GP epochs)."""
-        return cls(max_train=None, es_pop=100, es_iters=100, gp_epochs=100, vector_nsga=False)
+        """HEBO 0.3.6's own settings (no cap, NSGA-II 100 x 100 on mixed variables, 100 GP epochs, one torch thread)."""
+        return cls(max_train=None, es_pop=100, es_iters=100, gp_epochs=100, vector_nsga=False, torch_threads=1)
 
     def to_json(self) -> dict[str, Any]:
         return {name: getattr(self, name) for name in self.__slots__}  # type: ignore[attr-defined]
@@ -237,11 +241,12 @@ class HeboAdapter:
             LOG.debug("hebo warning: %s", w.message)
 
     @contextlib.contextmanager
-    def _seeded(self, n: int) -> Iterator[int]:
-        """Seed numpy/torch for one suggestion; restore global RNG states and threads."""
+    def _seeded(self, n: int, n_used: int, skip: int) -> Iterator[int]:
+        """Seed numpy/torch for one suggestion from (seed, observations used, batch size,
+        points suggested before); restore global RNG states and threads afterwards."""
         import torch
 
-        key = np.random.SeedSequence([self.seed, self.n_observed, n]).generate_state(1)[0]
+        key = np.random.SeedSequence([self.seed, n_used, n, skip]).generate_state(1)[0]
         np_state = np.random.get_state()
         threads = torch.get_num_threads()
         try:
@@ -262,9 +267,10 @@ class HeboAdapter:
             eng.fast_forward(skip)
         return eng.draw(n).double().numpy()
 
-    def _training_set(self) -> tuple[Any, npt.NDArray[np.float64]]:
-        """The capped (X DataFrame, y (m, 1)) the GP is fitted on."""
-        X, y = self.hebo.X, self.hebo.y
+    def _training_set(self, upto: int | None = None) -> tuple[Any, npt.NDArray[np.float64]]:
+        """The capped (X DataFrame, y (m, 1)) the GP is fitted on (first ``upto`` observations)."""
+        m = self.n_observed if upto is None else upto
+        X, y = self.hebo.X.iloc[:m], self.hebo.y[:m]
         cap = self.config.max_train
         if cap is None or len(y) <= cap:
             return X, y
@@ -278,22 +284,33 @@ class HeboAdapter:
         idx = np.array(sorted(keep))
         return X.iloc[idx].reset_index(drop=True), y[idx]
 
-    def suggest(self, n: int) -> npt.NDArray[np.float64]:
-        """``n`` new points (n, dim) in [0, 1] (deterministic given seed and observations)."""
+    def suggest(self, n: int, *, upto: int | None = None, skip: int | None = None) -> npt.NDArray[np.float64]:
+        """``n`` new points (n, dim) in [0, 1] from the first ``upto`` observations (default:
+        all), deterministic given the seed and those observations.
+
+        ``upto`` lets a caller suggest the next batch while the current one is still being
+        evaluated, from the observations it had before (and reproduce that on resume);
+        ``skip`` (default ``upto``) is how many points were suggested before this call, so
+        that the initial Sobol points of overlapping calls do not repeat.
+        """
         if n < 1:
             raise InvalidInputError(f"suggest: n must be >= 1, got {n}")
-        with self._seeded(n) as key, self._quiet():
-            if self.n_observed < self.hebo.rand_sample:
-                return self._sobol(n, self.n_observed)
-            return self._suggest_model(n, key)
+        m = self.n_observed if upto is None else int(upto)
+        if not 0 <= m <= self.n_observed:
+            raise InvalidInputError(f"suggest: upto must be in [0, {self.n_observed}], got {upto}")
+        k = m if skip is None else int(skip)
+        with self._seeded(n, m, k) as key, self._quiet():
+            if m < self.hebo.rand_sample:
+                return self._sobol(n, k)
+            return self._suggest_model(n, key, m)
 
-    def _suggest_model(self, n: int, key: int) -> npt.NDArray[np.float64]:
+    def _suggest_model(self, n: int, key: int, m: int) -> npt.NDArray[np.float64]:
         import pandas as pd
         import torch
         from sklearn.preprocessing import power_transform
 
         h, space, cfg = self._h, self.space, self.config
-        Xdf, yy = self._training_set()
+        Xdf, yy = self._training_set(m)
         X, Xe = space.transform(Xdf)
 
         def fit(y_t: Any) -> Any:
@@ -318,7 +335,7 @@ class HeboAdapter:
         best_x = Xdf.iloc[[best_id]]
         py_best, _ = model.predict(*space.transform(best_x))
         py_best = py_best.detach().numpy().squeeze()
-        n_obs = self.n_observed
+        n_obs = m
         it = max(1, n_obs // n)
         kappa = np.sqrt(0.5 * 2 * ((2.0 + self.dim / 2.0) * np.log(it) + np.log(3 * np.pi**2 / (3 * 0.01))))
         acq = h["MACE"](model, best_y=py_best, kappa=kappa)
@@ -346,7 +363,7 @@ class HeboAdapter:
             x = [x] if isinstance(x, dict) else list(x)
             rec = pd.DataFrame(x)[self.names].to_numpy(dtype=float)
         rec = np.unique(np.clip(rec, 0.0, 1.0), axis=0)
-        seen = {tuple(r) for r in self.X}
+        seen = {tuple(r) for r in self.X[:m]}
         rec = np.array([r for r in rec if tuple(r) not in seen]).reshape(-1, self.dim)
         if len(rec) < n:  # too few Pareto points: fill with Sobol points (as HEBO does)
             rec = np.vstack([rec, self._sobol(n - len(rec), n_obs + 7919)])

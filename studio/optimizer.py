@@ -44,7 +44,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -197,8 +197,10 @@ class OptimizationResult:
     stopped: bool
     """True when the stop event ended the run before its budget."""
     timings: dict[str, float] = field(default_factory=dict)
-    """Wall times [s] of this call: ``suggest``, ``evaluate``, ``final``, ``total``
-    (``evaluate_cpu``: sum of per-evaluation worker times)."""
+    """Wall times [s] of this call: ``suggest`` (all HEBO suggestions), ``suggest_overlapped``
+    (the part made while workers evaluated; it is inside ``evaluate`` too), ``evaluate``
+    (batches, from hand-over to the last result), ``final``, ``total`` (``evaluate_cpu``:
+    sum of per-evaluation worker wall times)."""
     run_dir: Path | None = None
     """Where ``run.json`` and ``evaluations.jsonl`` are."""
     observed_X: npt.NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, len(GENE_NAMES))))
@@ -319,30 +321,40 @@ class EvaluatorPool:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
-    def map(self, X: npt.NDArray[np.float64], *, tosses: int, rng_seeds: Sequence[int]) -> Iterable[tuple[Outcome, float]]:
-        """Yield (outcome, seconds) per row of physical genomes X (n, 10), in order, as they finish."""
+    def map(self, X: npt.NDArray[np.float64], *, tosses: int, rng_seeds: Sequence[int]) -> Iterator[tuple[Outcome, float]]:
+        """(outcome, seconds) per row of physical genomes X (n, 10), in order, as they finish.
+
+        With worker processes every row is submitted at once, before this returns (the
+        caller may do other work meanwhile); in-process evaluation runs as it is iterated.
+        """
         X = np.atleast_2d(X)
         if self._evaluate is not None or self._pool is None:
-            for x, s in zip(X, rng_seeds):
-                t0 = time.perf_counter()
-                serve = HandServe(name="candidate", side=self.side, params=ServeParams.from_vector(x))
-                rng = np.random.default_rng(s)
-                if self._evaluate is not None:
-                    out = self._evaluate(serve, tosses, rng)
-                else:
-                    if self._context is None:
-                        from studio.evaluate import EvaluationContext
-
-                        self._context = EvaluationContext.for_training(ipopt_fallback=self._ipopt_fallback)
-                    ctx = self._context
-                    out = evaluate_outcome(serve, task=self.task, tosses=tosses, min_legal_fraction=self.p, rng=rng, context=ctx)
-                yield out, time.perf_counter() - t0
-            return
+            return self._map_here(X, tosses, rng_seeds)
         futs = [self._pool.submit(_worker_eval, (self.side, self.task, [float(v) for v in x], tosses, self.p, int(s))) for x, s in zip(X, rng_seeds)]
-        for f in futs:
-            d, sec = f.result()
-            d["rewards"] = tuple(d["rewards"])
-            yield Outcome(**d), sec
+
+        def results() -> Iterator[tuple[Outcome, float]]:
+            for f in futs:
+                d, sec = f.result()
+                d["rewards"] = tuple(d["rewards"])
+                yield Outcome(**d), sec
+
+        return results()
+
+    def _map_here(self, X: npt.NDArray[np.float64], tosses: int, rng_seeds: Sequence[int]) -> Iterator[tuple[Outcome, float]]:
+        for x, s in zip(X, rng_seeds):
+            t0 = time.perf_counter()
+            serve = HandServe(name="candidate", side=self.side, params=ServeParams.from_vector(x))
+            rng = np.random.default_rng(s)
+            if self._evaluate is not None:
+                out = self._evaluate(serve, tosses, rng)
+            else:
+                if self._context is None:
+                    from studio.evaluate import EvaluationContext
+
+                    self._context = EvaluationContext.for_training(ipopt_fallback=self._ipopt_fallback)
+                ctx = self._context
+                out = evaluate_outcome(serve, task=self.task, tosses=tosses, min_legal_fraction=self.p, rng=rng, context=ctx)
+            yield out, time.perf_counter() - t0
 
 
 # -- run files --------------------------------------------------------------------------
@@ -497,6 +509,7 @@ def optimize_serve(
     evaluate: EvaluateFn | None = None,
     ipopt_fallback: bool = False,
     on_record: Callable[[dict[str, Any]], None] | None = None,
+    overlap: bool = True,
 ) -> OptimizationResult:
     """Optimize a serve's genome for ``task`` on the ``side`` toss with HEBO (maximize F).
 
@@ -528,6 +541,10 @@ def optimize_serve(
             (off by default in training: :meth:`EvaluationContext.for_training`).
         on_record: called with each new evaluation record (the JSON object of its
             ``evaluations.jsonl`` line) right after it is logged (Ray streaming).
+        overlap: suggest batch i+1 while the worker processes evaluate batch i, from the
+            observations up to batch i-1 (one batch of lag): HEBO's suggestion time then
+            hides behind the evaluation. ``False``: every suggestion sees every earlier
+            batch (fully sequential).
     """
     t_start = time.perf_counter()
     if iterations < 0 or population < 1:
@@ -544,6 +561,7 @@ def optimize_serve(
             pool, t_start, side=side, task=task, run_dir=run_dir, context=context, seeds=seeds, iterations=iterations, population=population,
             tosses=tosses, min_legal_fraction=min_legal_fraction, seed=seed, progress=progress, stop=stop, bounds=bounds, config=config,
             resume=resume, top_k=top_k, final_tosses=final_tosses, evaluate=evaluate, ipopt_fallback=ipopt_fallback, on_record=on_record,
+            overlap=overlap,
         )  # fmt: skip
     finally:
         pool.close()
@@ -553,7 +571,7 @@ def _optimize(
     pool: EvaluatorPool, t_start: float, *, side: TossSide, task: str, run_dir: Path, context: Any, seeds: Sequence[HandServe], iterations: int,
     population: int, tosses: int, min_legal_fraction: float, seed: int, progress: ProgressFn | None, stop: threading.Event | None,
     bounds: GenomeBounds | None, config: HeboConfig, resume: bool, top_k: int, final_tosses: int, evaluate: EvaluateFn | None, ipopt_fallback: bool,
-    on_record: Callable[[dict[str, Any]], None] | None,
+    on_record: Callable[[dict[str, Any]], None] | None, overlap: bool,
 ) -> OptimizationResult:  # fmt: skip
     if bounds is None:
         if context is not None:
@@ -585,14 +603,16 @@ def _optimize(
         "genes": list(GENE_NAMES),
         "config": config.to_json(),
         "ipopt_fallback": bool(ipopt_fallback),
+        "overlap": bool(overlap),
         "seeds": [s.to_json() for s in seeds],
     }
     log_path = run_dir / "evaluations.jsonl"
     records: list[EvaluationRecord] = []
     if resume and (run_dir / "run.json").exists():
         old = json.loads((run_dir / "run.json").read_text())
-        old.setdefault("ipopt_fallback", False)  # runs logged before the option existed
-        for key in ("side", "task", "seed", "population", "tosses", "bounds", "config", "min_legal_fraction", "ipopt_fallback"):
+        old.setdefault("ipopt_fallback", False)  # runs logged before these options existed
+        old.setdefault("overlap", False)
+        for key in ("side", "task", "seed", "population", "tosses", "bounds", "config", "min_legal_fraction", "ipopt_fallback", "overlap"):
             if old.get(key) != json.loads(json.dumps(run_json[key])):
                 raise InvalidInputError(f"resume: {run_dir / 'run.json'} has {key}={old.get(key)!r}, this call has {run_json[key]!r}")
         records = _read_jsonl(log_path)
@@ -606,7 +626,7 @@ def _optimize(
     if records:
         opt.observe(np.array([r.genome for r in records]), -np.array([r.reward for r in records]))
 
-    timings = {"suggest": 0.0, "evaluate": 0.0, "evaluate_cpu": 0.0, "final": 0.0}
+    timings = {"suggest": 0.0, "suggest_overlapped": 0.0, "evaluate": 0.0, "evaluate_cpu": 0.0, "final": 0.0}
     total = len(seeds) + iterations * population
     stopped = False
     log = _Log(log_path)
@@ -617,12 +637,17 @@ def _optimize(
         r = max(records, key=lambda r: r.reward)
         return r.reward, ServeParams.from_vector([r.params[g] for g in GENE_NAMES])
 
-    def run_batch(Z: npt.NDArray[np.float64], batch: int, sources: list[str], pool: EvaluatorPool) -> None:
+    def run_batch(Z: npt.NDArray[np.float64], batch: int, sources: list[str], pool: EvaluatorPool, meanwhile: Callable[[], None] | None = None) -> None:
+        """Evaluate, log and observe the batch Z; ``meanwhile`` runs after the batch was
+        handed to the worker processes, before its results are collected."""
         X = low + Z * (high - low)
         start = len(records)
         rng_seeds = [int(np.random.SeedSequence([seed, 1, start + i]).generate_state(1)[0]) for i in range(len(Z))]
         t0 = time.perf_counter()
-        for i, (out, sec) in enumerate(pool.map(X, tosses=tosses, rng_seeds=rng_seeds)):
+        results = pool.map(X, tosses=tosses, rng_seeds=rng_seeds)
+        if meanwhile is not None:
+            meanwhile()
+        for i, (out, sec) in enumerate(results):
             reward = out.reward if math.isfinite(out.reward) else -penalty
             rec = EvaluationRecord(
                 index=start + i, batch=batch, source=sources[i], genome=[float(v) for v in Z[i]],
@@ -636,6 +661,16 @@ def _optimize(
             opt.observe(Z[i : i + 1], np.array([-reward]))
             timings["evaluate_cpu"] += sec
         timings["evaluate"] += time.perf_counter() - t0
+
+    ahead: dict[int, npt.NDArray[np.float64]] = {}
+
+    def usable(it: int) -> int:
+        """Observations batch ``it``'s suggestion is made from (a prefix of the log): all
+        of them, or with ``overlap`` those of the seeds and the batches up to it - 2 (batch
+        0 follows the seeds, nothing is in flight then)."""
+        if not overlap:
+            return len(records)
+        return sum(1 for r in records if r.batch <= max(it - 2, -1))
 
     def report() -> None:
         if progress is not None:
@@ -658,9 +693,19 @@ def _optimize(
                 stopped = True
                 break
             t0 = time.perf_counter()
-            Z = opt.suggest(missing)
+            Z = ahead.pop(it, None)
+            if Z is None or len(Z) != missing:
+                Z = opt.suggest(missing, upto=usable(it), skip=len(records))
             timings["suggest"] += time.perf_counter() - t0
-            run_batch(Z, it, ["hebo"] * missing, pool)
+
+            def suggest_next(nxt: int = it + 1) -> None:
+                if nxt < iterations and not (stop is not None and stop.is_set()):
+                    t1 = time.perf_counter()
+                    ahead[nxt] = opt.suggest(population, upto=usable(nxt), skip=len(records) + len(Z))
+                    timings["suggest"] += time.perf_counter() - t1
+                    timings["suggest_overlapped"] += time.perf_counter() - t1
+
+            run_batch(Z, it, ["hebo"] * missing, pool, meanwhile=suggest_next if overlap else None)
             report()
 
         # final pick: top-k distinct candidates, re-evaluated on fresh tosses

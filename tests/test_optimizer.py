@@ -276,3 +276,23 @@ def test_run_history_reads_the_log_and_flags_corrupt_lines(tmp_path: Path) -> No
         load_run_history(tmp_path / "r")
     with pytest.raises(DataFileError, match="run.json"):
         load_run_history(tmp_path)
+
+
+def test_overlap_suggests_from_the_batches_before_the_previous_one(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[tuple[int, int, int]] = []
+    real = HeboAdapter.suggest
+
+    def spy(self, n, *, upto=None, skip=None):  # type: ignore[no-untyped-def]
+        calls.append((n, upto, self.n_observed))
+        return real(self, n, upto=upto, skip=skip)
+
+    monkeypatch.setattr(HeboAdapter, "suggest", spy)
+    res = run(tmp_path / "lag", iterations=4)
+    # 2 seeds, batches of 4: batch i >= 1 is suggested from seeds + batches <= i - 2
+    assert [upto for _, upto, _ in calls] == [2, 2, 6, 10]
+    assert [seen for _, _, seen in calls] == [2, 2, 6, 10]  # batch i+1 is asked for before batch i is observed
+    genomes = [tuple(r["genome"]) for r in read_log(tmp_path / "lag")]
+    assert len(set(genomes)) == len(genomes) == res.evaluations  # the Sobol start does not repeat points
+    calls.clear()
+    run(tmp_path / "sync", iterations=4, overlap=False)
+    assert [upto for _, upto, _ in calls] == [2, 6, 10, 14]
