@@ -3,7 +3,7 @@
 Targets (fixed seed, documented):
 
 * Start: both default tosses (right, left) of :func:`studio.toss.load_default_toss_model`;
-  the planner takes over at ``t_lift + 0.02 s`` (``studio.evaluate.SWITCH_DELAY``) from
+  the planner takes over at ``t_lift + SWITCH_DELAY`` (``studio.evaluate``, 0.06 s) from
   the toss's command state and predicted joint state.
 * Contact times on the toss clock where the mean ball path is 0-0.5 m above the table
   (it is behind the end line, x ~ -1.65 m); tau_f - tau uniform in [0.4, 1.2] s (the
@@ -37,12 +37,11 @@ import time
 
 import numpy as np
 
+from studio.evaluate import SWITCH_DELAY  # [s] planner take-over after the lift, as in evaluations
 from studio.planner import StrikePlanner, StrikeStart, StrikeTarget
 from studio.robot import load_robot
 from studio.serve import racket_normal
 from studio.toss import load_default_toss_model
-
-SWITCH_DELAY = 0.02  # [s], as studio.evaluate.SWITCH_DELAY
 
 
 def ik(robot, q0, p, n, iters=60):  # type: ignore[no-untyped-def]

@@ -397,7 +397,9 @@ class StudioApp:
             self._message("**Export failed:** nothing evaluated yet")
             return
         try:
-            entry = ServeLibrary(self.library_dir).add(evaluation, provenance={"kind": "hand-designed", "tool": "studio"}, task=self.task.value)
+            entry = ServeLibrary(self.library_dir).add(
+                evaluation, provenance={"kind": "hand-designed", "tool": "studio"}, task=self.task.value, preparation=self.context.preparation(evaluation.serve.side)
+            )
             verdict = "legal" if evaluation.legal else f"NOT legal ({evaluation.reason})"
             self._message(f"Exported `{evaluation.serve.name}` ({verdict}) to `{self.library_dir}` as `{entry.id}`.")
             self._refresh_library()

@@ -38,7 +38,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.export:
         from studio.library import ServeLibrary
 
-        entry = ServeLibrary(args.export).add(evaluation, provenance={"kind": "hand-designed", "file": str(args.serve)}, task=task)
+        entry = ServeLibrary(args.export).add(evaluation, provenance={"kind": "hand-designed", "file": str(args.serve)}, task=task, preparation=context.preparation(serve.side))
         payload["exported"] = {"library": str(args.export), "id": entry.id}
     if args.json:
         print(json.dumps(payload, indent=2))
@@ -103,8 +103,9 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     if args.export:
         from studio.library import ServeLibrary
 
-        evaluation = evaluate_serve(best, EvaluationContext.default(), task=args.task)
-        entry = ServeLibrary(args.export).add(evaluation, provenance={"kind": "hebo", "run": str(run_dir), "seed": args.seed}, task=args.task)
+        context = EvaluationContext.default()
+        evaluation = evaluate_serve(best, context, task=args.task)
+        entry = ServeLibrary(args.export).add(evaluation, provenance={"kind": "hebo", "run": str(run_dir), "seed": args.seed}, task=args.task, preparation=context.preparation(best.side))
         print(f"exported to {args.export} as {entry.id}")
     return 0 if s.legal else 1
 

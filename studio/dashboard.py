@@ -144,9 +144,15 @@ def joint_plot(arrays: dict[str, Any], *, title: str = "joint commands u(t)") ->
     t = np.asarray(arrays["t"], dtype=float)
     u = np.asarray(arrays["u"], dtype=float)
     names = [str(n) for n in np.asarray(arrays.get("joint_names", []))] or [f"joint {i}" for i in range(u.shape[1])]
-    fig = figure(title=title, height=320, sizing_mode="stretch_width", x_axis_label="t [s] (toss clock)", y_axis_label="u [m or rad]")
+    t_toss = float(np.asarray(arrays.get("t_toss", 0.0)))
+    clock = "from the preparation's start; the toss starts at the dashed line" if t_toss > 0 else "toss clock"
+    fig = figure(title=title, height=320, sizing_mode="stretch_width", x_axis_label=f"t [s] ({clock})", y_axis_label="u [m or rad]")
     for i in range(u.shape[1]):
         fig.line(t, u[:, i], color=Category10[10][i % 10], line_width=2, legend_label=names[i] if i < len(names) else f"joint {i}")
+    if t_toss > 0:
+        from bokeh.models import Span
+
+        fig.add_layout(Span(location=t_toss, dimension="height", line_dash="dashed", line_color="#4a5568", line_width=1))
     fig.legend.click_policy = "hide"
     fig.legend.label_text_font_size = "8pt"
     fig.add_layout(fig.legend[0], "right")

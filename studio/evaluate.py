@@ -100,6 +100,16 @@ class EvaluationContext:
 
         return cls(robot=load_robot(), planner_options=PlannerOptions(fallback=ipopt_fallback))
 
+    def preparation(self, side: TossSide) -> Any:
+        """The preparation phase before a side's toss (feeder pose ``q_flat`` to the
+        toss's first command, then a hold): :class:`studio.planner.PreparationPhase`, cached."""
+        key = f"prep:{side}"
+        if key not in self._toss_reports:
+            from studio.planner import preparation_phase
+
+            self._toss_reports[key] = preparation_phase(self.robot, self.toss_model(side).primitive.u[0])
+        return self._toss_reports[key]
+
     def warm_up(self, side: TossSide) -> None:
         """Build the toss model of ``side``, the planner and the collision model now
         (instead of in the first evaluation)."""

@@ -113,6 +113,12 @@ class LibraryEntry:
         for key in _ARRAYS:
             if not np.all(np.isfinite(out[key])):
                 raise DataFileError(path, f"array {key!r} holds non-finite values")
+        if "t_toss" in out:  # absent in libraries written before the preparation phase was exported
+            tt = out["t_toss"]
+            if tt.shape != () or not np.isfinite(tt) or not (m == 0 or out["t"][0] <= float(tt) <= out["t"][-1]):
+                raise DataFileError(path, f"array 't_toss' must be one time within t, got {tt!r}")
+        else:
+            out["t_toss"] = np.array(0.0)
         return out
 
 
@@ -171,6 +177,9 @@ class ServeLibrary:
             reward = entry["reward"]
             if isinstance(reward, bool) or not isinstance(reward, (int, float)) or not np.isfinite(reward):
                 raise DataFileError(self.index_path, f"field '{where}.reward': must be a finite number")
+            t_toss = entry.get("t_toss", 0.0)
+            if isinstance(t_toss, bool) or not isinstance(t_toss, (int, float)) or not np.isfinite(t_toss) or t_toss < 0:
+                raise DataFileError(self.index_path, f"field '{where}.t_toss': must be a finite time >= 0 [s], got {t_toss!r}")
             usage = entry.get("usage")
             if usage is not None:
                 if not isinstance(usage, dict):
@@ -204,28 +213,48 @@ class ServeLibrary:
                 return e
         raise InvalidInputError(f"serve {serve_id!r} not found in library {self.folder}")
 
-    def add(self, evaluation: Any, *, provenance: dict[str, Any] | None = None, task: str | None = None) -> LibraryEntry:
+    def add(self, evaluation: Any, *, provenance: dict[str, Any] | None = None, task: str | None = None, preparation: Any = None) -> LibraryEntry:
         """Export an evaluated serve (:class:`studio.evaluate.Evaluation`) with its plan.
+
+        ``preparation``: the :class:`studio.planner.PreparationPhase` before the toss
+        (``EvaluationContext.preparation(side)``); the arrays then hold preparation + toss +
+        strike + return to rest on one clock from 0 (DESIGN.md), the toss starting at
+        ``t_toss`` (stored in the NPZ and the index). Without it the arrays start with the
+        toss (``t_toss`` = 0).
 
         Raises InvalidInputError when the evaluation has no motion plan to export.
         """
         ev = evaluation
         if ev.t is None or ev.u is None or ev.q is None:
             raise InvalidInputError(f"serve {ev.serve.name!r} has no motion plan to export ({ev.status}: {ev.reason})")
+        t = np.asarray(ev.t, dtype=float)
+        u = np.asarray(ev.u, dtype=float)
+        q = np.asarray(ev.q, dtype=float)
+        t_toss = 0.0
+        if preparation is not None:
+            pu, pq = np.asarray(preparation.u, dtype=float), np.asarray(preparation.q, dtype=float)
+            if pu.ndim != 2 or pu.shape[1:] != (8,) or pq.shape != pu.shape:
+                raise InvalidInputError(f"preparation arrays must be (P, 8), got {pu.shape} and {pq.shape}")
+            dt = float(t[1] - t[0]) if t.size > 1 else 1e-3
+            t_toss = pu.shape[0] * dt
+            t = np.concatenate([np.arange(pu.shape[0]) * dt, t - t[0] + t_toss])
+            u = np.vstack([pu, u])
+            q = np.vstack([pq, q])
         entries = self.entries()  # validate before writing anything
         self.folder.mkdir(parents=True, exist_ok=True)
         slug = re.sub(r"[^a-z0-9]+", "-", ev.serve.name.lower()).strip("-")[:40] or "serve"
         sid = f"{slug}-{uuid.uuid4().hex[:8]}"
-        ball_t = np.asarray(ev.ball.t) if ev.ball is not None else np.zeros(0)
+        ball_t = np.asarray(ev.ball.t) - float(np.asarray(ev.t)[0]) + t_toss if ev.ball is not None else np.zeros(0)
         ball_p = np.asarray(ev.ball.p) if ev.ball is not None else np.zeros((0, 3))
         buf = io.BytesIO()
         np.savez_compressed(
             buf,
-            t=np.asarray(ev.t, dtype=float),
-            u=np.asarray(ev.u, dtype=float),
-            q=np.asarray(ev.q, dtype=float),
+            t=t,
+            u=u,
+            q=q,
             ball_t=ball_t,
             ball_p=ball_p,
+            t_toss=np.array(t_toss),
             joint_names=np.array(load_spec().joint_names),
         )
         _atomic_write(self.folder / f"{sid}.npz", buf.getvalue())
@@ -247,6 +276,7 @@ class ServeLibrary:
             "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "usage": {"used": 0, "won": 0, "lost": 0, "aces": 0},
             "arrays": f"{sid}.npz",
+            "t_toss": t_toss,
         }
         doc = {"schema": LIBRARY_SCHEMA, "serves": [e.data for e in entries] + [entry]}
         _atomic_write(self.index_path, (json.dumps(doc, indent=2) + "\n").encode("utf-8"))

@@ -1510,6 +1510,52 @@ def _rest_to_rest(q0: FloatArray, q1: FloatArray, limits: JointLimits, dt: float
     return T, q0[None] + p[:, None] * d, pd[:, None] * d, pdd[:, None] * d
 
 
+@dataclass(frozen=True, eq=False)
+class PreparationPhase:
+    """Feeder pose to the toss's first command, then a hold: the first part of a serve
+    (1 kHz, commands at the interval midpoints as :class:`Plan`; states at the samples)."""
+
+    u: FloatArray
+    """Commands (P, 8)."""
+    ud: FloatArray
+    """Command velocities (P, 8)."""
+    udd: FloatArray
+    """Command accelerations (P, 8)."""
+    q: FloatArray
+    """Predicted joint positions (P, 8) from rest at the start pose."""
+    qd: FloatArray
+    """Predicted joint velocities (P, 8)."""
+    max_tilt: float
+    """Largest racket-normal tilt from vertical over the phase [rad] (the ball rides in the cup)."""
+
+    @property
+    def duration(self) -> float:
+        """Length of the phase [s] (the toss starts then)."""
+        return self.u.shape[0] * COMMAND_DT
+
+
+def preparation_phase(
+    robot: Robot, u_toss0: npt.ArrayLike, *, limits: JointLimits | None = None, q_start: npt.ArrayLike | None = None, settle: float = 0.3, dt: float = COMMAND_DT
+) -> PreparationPhase:
+    """The preparation of the paper: from ``q_start`` (default ``robot.q_flat``, the pose
+    at the ball feeder) a rest-to-rest quintic to the toss's first command ``u_toss0``
+    (8,), then ``settle`` seconds of hold so the joints are at rest when the toss starts
+    (its predicted states assume so). The racket tilt is not constrained: see
+    :attr:`PreparationPhase.max_tilt`."""
+    if not (math.isfinite(settle) and settle >= 0.0):
+        raise InvalidInputError(f"preparation: settle must be >= 0 s, got {settle}")
+    q0 = _vec(robot.q_flat if q_start is None else q_start, (8,), "preparation q_start")
+    u1 = _vec(u_toss0, (8,), "preparation u_toss0")
+    _, pu, pud, pudd = _rest_to_rest(q0, u1, limits if limits is not None else robot.limits, dt)
+    n_hold = int(round(settle / dt))
+    pu = np.vstack([pu, np.repeat(u1[None], n_hold, axis=0)])
+    pud = np.vstack([pud, np.zeros((n_hold, 8))])
+    pudd = np.vstack([pudd, np.zeros((n_hold, 8))])
+    X = robot.dynamics.simulate(pu, dt, np.stack([q0, np.zeros(8)], axis=1))
+    tilt = [math.acos(float(np.clip(robot.fk(qq).normal[2], -1.0, 1.0))) for qq in X[::10, :, 0]]
+    return PreparationPhase(pu, pud, pudd, X[:, :, 0], X[:, :, 1], max(tilt) if tilt else 0.0)
+
+
 def start_from_toss(toss: object, t_switch: float) -> tuple[StrikeStart, int]:
     """Strike start state at the toss sample k at or before ``t_switch`` (toss clock):
     the predicted joint state ``toss.X[k]`` (at t_k) and the command state moved from
@@ -1568,18 +1614,11 @@ def plan_serve(
         raise InvalidInputError(f"plan_serve: toss dt {getattr(toss, 'dt', None)} differs from the planner's {dt}")
     if not (math.isfinite(t_switch) and 0.0 <= t_switch < float(toss.t[-1])):  # type: ignore[attr-defined]
         raise InvalidInputError(f"plan_serve: t_switch = {t_switch} s outside the toss [0, {float(toss.t[-1])}]")  # type: ignore[attr-defined]
-    if not (math.isfinite(settle) and settle >= 0.0):
-        raise InvalidInputError(f"plan_serve: settle must be >= 0 s, got {settle}")
-    q0 = _vec(robot.q_flat if q_start is None else q_start, (8,), "plan_serve q_start")
     tu, tud, tudd, tX = (np.asarray(getattr(toss, f)) for f in ("u", "ud", "udd", "X"))
     start, k = start_from_toss(toss, t_switch)
     # 1. Preparation and hold.
-    T_p, pu, pud, pudd = _rest_to_rest(q0, tu[0], planner.limits, dt)
-    n_hold = int(round(settle / dt))
-    pu = np.vstack([pu, np.repeat(tu[:1], n_hold, axis=0)])
-    pud = np.vstack([pud, np.zeros((n_hold, 8))])
-    pudd = np.vstack([pudd, np.zeros((n_hold, 8))])
-    X_prep = robot.dynamics.simulate(pu, dt, np.stack([q0, np.zeros(8)], axis=1))
+    prep = preparation_phase(robot, tu[0], limits=planner.limits, q_start=q_start, settle=settle, dt=dt)
+    pu, pud, pudd = prep.u, prep.ud, prep.udd
     n_p = pu.shape[0]
     # 3. Strike from the toss state at sample k (command state moved to t_k).
     strike = planner.plan(start, target, warm_start=warm_start)
@@ -1591,17 +1630,16 @@ def plan_serve(
         su, sud, sudd, sq, sqd = strike.u, strike.ud, strike.udd, strike.q, strike.qd
     u = np.vstack([pu, tu[:k], su])
     n = u.shape[0]
-    tilt = [math.acos(float(np.clip(robot.fk(qq).normal[2], -1.0, 1.0))) for qq in X_prep[::10, :, 0]]
     return ServePlan(
         t=np.arange(n) * dt,
         u=u,
         ud=np.vstack([pud, tud[:k], sud]),
         udd=np.vstack([pudd, tudd[:k], sudd]),
-        q=np.vstack([X_prep[:, :, 0], tX[:k, :, 0], sq]),
-        qd=np.vstack([X_prep[:, :, 1], tX[:k, :, 1], sqd]),
+        q=np.vstack([prep.q, tX[:k, :, 0], sq]),
+        qd=np.vstack([prep.qd, tX[:k, :, 1], sqd]),
         t_toss=t_toss,
         t_switch=t_sw,
         t_contact=t_sw + target.tau,
         strike=strike,
-        max_preparation_tilt=max(tilt) if tilt else 0.0,
+        max_preparation_tilt=prep.max_tilt,
     )

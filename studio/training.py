@@ -177,7 +177,7 @@ def _finish(index: int, run_dir: Path, seed: int, best: HandServe | None, cfg: T
         return TrainedServe(index, run_dir, False, -math.inf, {}, None, seconds, "nothing evaluated")
     ev = evaluate_serve(best, context, task=cfg.task)
     row = _row(ev, cfg.task) if ev.legal else {}
-    entry_id = library.add(ev, provenance={"kind": "hebo", "run": str(run_dir), "seed": seed}, task=cfg.task).id if ev.legal else None
+    entry_id = library.add(ev, provenance={"kind": "hebo", "run": str(run_dir), "seed": seed}, task=cfg.task, preparation=context.preparation(best.side)).id if ev.legal else None
     (run_dir / "exported.json").write_text(json.dumps({"id": entry_id, "legal": bool(ev.legal), "reward": float(ev.reward.total), "row": row, "reason": ev.reason}))
     return TrainedServe(index, run_dir, bool(ev.legal), float(ev.reward.total), row, entry_id, seconds, "" if ev.legal else ev.reason)
 

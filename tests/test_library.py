@@ -43,6 +43,22 @@ def test_export_and_read_back_is_identical(tmp_path: Path, evaluation) -> None: 
     assert not list((tmp_path / "lib").glob(".*tmp"))  # atomic writes leave no temporaries
 
 
+def test_export_holds_preparation_toss_and_strike_on_one_clock(tmp_path: Path, evaluation) -> None:  # type: ignore[no-untyped-def]
+    context = EvaluationContext.default()
+    prep = context.preparation(evaluation.serve.side)
+    entry = ServeLibrary(tmp_path / "lib").add(evaluation, preparation=prep)
+    a = entry.arrays()
+    P = prep.u.shape[0]
+    assert entry.data["t_toss"] == pytest.approx(P * 1e-3) and float(a["t_toss"]) == pytest.approx(P * 1e-3)
+    assert a["t"][0] == 0.0 and np.all(np.diff(a["t"]) == pytest.approx(1e-3))  # one 1 kHz clock from 0
+    np.testing.assert_allclose(a["q"][0], context.robot.q_flat, atol=1e-12)  # starts at rest at the feeder pose
+    np.testing.assert_array_equal(a["u"][P:], evaluation.u)  # then the toss, strike and return, unchanged
+    np.testing.assert_allclose(a["u"][P - 1], evaluation.u[0], atol=1e-12)  # the hold is at the toss's first command
+    np.testing.assert_allclose(a["q"][P - 1], evaluation.u[0], atol=1e-6)  # and the joints have settled there
+    np.testing.assert_allclose(a["ball_t"], evaluation.ball.t - evaluation.t[0] + P * 1e-3)  # ball on the same clock
+    assert prep.duration > 0.3 and prep.max_tilt < np.radians(45)
+
+
 def test_corrupt_index_is_rejected_with_file_and_field(tmp_path: Path, evaluation) -> None:  # type: ignore[no-untyped-def]
     lib = ServeLibrary(tmp_path)
     lib.add(evaluation)
