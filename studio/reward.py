@@ -51,12 +51,15 @@ class RewardWeights:
     """Gains of the reward terms; a zero gain disables a term."""
 
     g_pos: float = 0.0
-    """Gain of r_pos = g_pos * exp(-d^2 / (2 sigma^2)), d the x-y distance of the second
-    bounce from ``target`` [m]."""
+    """Gain of r_pos = g_pos * exp(-d / sigma), d the x-y distance of the second bounce
+    from ``target`` [m]. A Laplace kernel rather than a Gaussian: with
+    exp(-d^2 / (2 * 0.15^2)) the reward had no slope beyond ~0.5 m; 5 aiming runs of 2000
+    evaluations (4 legal) ended 0.88 +- 0.45 m from the corner with the Gaussian and
+    0.77 +- 0.55 m with this kernel (paper: 0.17 +- 0.29 m) -- better slope, weak evidence."""
     target: tuple[float, float] = (1.2, 0.6)
     """Aim point of the second bounce (x, y) [m], world frame."""
-    pos_sigma: float = 0.15
-    """Length scale of r_pos [m]."""
+    pos_sigma: float = 0.3
+    """Length scale of r_pos [m] (r_pos = g_pos / e at this distance)."""
     g_vel_xy: float = 0.0
     """Gain on |v_xy| / v_xy_ref after the second bounce; negative to penalize speed."""
     g_vel_z: float = 0.0
@@ -146,7 +149,7 @@ def reward(
         raise InvalidInputError("reward: ball state at the second bounce must be finite")
     wt = weights
     d = float(np.hypot(p2[0] - wt.target[0], p2[1] - wt.target[1]))
-    r_pos = wt.g_pos * math.exp(-(d**2) / (2 * wt.pos_sigma**2))
+    r_pos = wt.g_pos * math.exp(-d / wt.pos_sigma)
     r_vel = wt.g_vel_xy * float(np.hypot(v2[0], v2[1])) / wt.v_xy_ref + wt.g_vel_z * abs(float(v2[2])) / wt.v_z_ref
     tb, ss, _ = spin_scalars(v2, w2)
     tb_hat = float(np.clip(tb, -wt.spin_max, wt.spin_max)) / wt.spin_max

@@ -56,7 +56,7 @@ def test_position_velocity_height_terms() -> None:
     assert on.r_vel == pytest.approx(5 / 10 - 2.5 / 5)
     assert on.r_height == pytest.approx(1.0)
     off = reward(p2=[1.1, 0.5, 0.02], v2=[3, 4, 2.5], w2=[0, 0, 0], max_height=0.4, weights=w)
-    assert off.r_pos == pytest.approx(2.0 * math.exp(-0.5))
+    assert off.r_pos == pytest.approx(2.0 * math.exp(-1.0))  # d = 0.1 m = sigma
     assert off.r_height == pytest.approx(0.25)
     assert on.total == pytest.approx(on.r_pos + on.r_vel + on.r_height)
 
