@@ -881,6 +881,28 @@ class SampledRacketMotion:
                 raise InvalidInputError(f"SampledRacketMotion: omega must be finite ({n}, 3), got {omega.shape}")
         self._omega = omega
         self._rows: dict[int, tuple[Any, Any, Any]] = {}  # interval -> python floats (hot path), filled on demand
+        # Rigorous bound on the origin speed: per interval |p'| <= 3|c0| h^2 + 2|c1| h + |c2| per axis.
+        hs = np.diff(t)[:, None]
+        c = self._c
+        vb = 3.0 * np.abs(c[:, 0]) * hs**2 + 2.0 * np.abs(c[:, 1]) * hs + np.abs(c[:, 2])
+        self._vmax = float(np.max(np.linalg.norm(vb, axis=1)))
+        self._p = p
+
+    def _far(self, lo: tuple[float, float, float], hi: tuple[float, float, float], ta: float, tb: float, dist: float) -> bool:
+        """True if the origin stays farther than ``dist`` [m] from the box [lo, hi] over
+        [ta, tb] (conservative: nearest sample plus the speed bound; hot path of :func:`simulate`)."""
+        tl = self._tl
+        tm = 0.5 * (ta + tb)
+        i = min(max(bisect.bisect_right(tl, tm) - 1, 0), len(tl) - 1)
+        if i + 1 < len(tl) and tl[i + 1] - tm < tm - tl[i]:
+            i += 1
+        ox, oy, oz = self._p[i].tolist()
+        ti = tl[i]
+        rad = self._vmax * max(abs(ta - ti), abs(tb - ti))
+        dx = max(lo[0] - ox, 0.0, ox - hi[0])
+        dy = max(lo[1] - oy, 0.0, oy - hi[1])
+        dz = max(lo[2] - oz, 0.0, oz - hi[2])
+        return math.sqrt(dx * dx + dy * dy + dz * dz) - rad > dist
 
     def _row(self, i: int) -> tuple[Any, Any, Any]:
         """Spline coefficients (4, 3), slerp increment (3,) and R_i (3, 3) of interval i as
@@ -897,7 +919,10 @@ class SampledRacketMotion:
         dt = t - tl[i]
         cl, rvl, Ri = self._row(i)
         c0, c1, c2, c3 = cl
-        o = [((c0[j] * dt + c1[j]) * dt + c2[j]) * dt + c3[j] for j in range(3)]
+        # unrolled (a list comprehension costs a frame per call on this hot path)
+        ox = ((c0[0] * dt + c1[0]) * dt + c2[0]) * dt + c3[0]
+        oy = ((c0[1] * dt + c1[1]) * dt + c2[1]) * dt + c3[1]
+        oz = ((c0[2] * dt + c1[2]) * dt + c2[2]) * dt + c3[2]
         # e_z rotated by the slerp increment (Rodrigues on one vector), then by R_i
         frac = dt / (tl[i + 1] - tl[i])
         kx, ky, kz = rvl
@@ -911,8 +936,13 @@ class SampledRacketMotion:
         ux = s * ky + cm * kx * kz
         uy = -s * kx + cm * ky * kz
         uz = 1.0 - cm * (kx * kx + ky * ky)
-        n = [Ri[j][0] * ux + Ri[j][1] * uy + Ri[j][2] * uz for j in range(3)]
-        return o[0], o[1], o[2], n[0], n[1], n[2]
+        r0, r1, r2 = Ri
+        return (
+            ox, oy, oz,
+            r0[0] * ux + r0[1] * uy + r0[2] * uz,
+            r1[0] * ux + r1[1] * uy + r1[2] * uz,
+            r2[0] * ux + r2[1] * uy + r2[2] * uz,
+        )  # fmt: skip
 
     @property
     def t_start(self) -> float:
@@ -1041,6 +1071,12 @@ def hermite(
     h10 = (t3 - 2.0 * t2 + theta) * h
     h01 = -2.0 * t3 + 3.0 * t2
     h11 = (t3 - t2) * h
+    if n == 3:  # positions: the hot path of event location, unrolled
+        return [
+            h00 * ya[0] + h10 * fa[0] + h01 * yb[0] + h11 * fb[0],
+            h00 * ya[1] + h10 * fa[1] + h01 * yb[1] + h11 * fb[1],
+            h00 * ya[2] + h10 * fa[2] + h01 * yb[2] + h11 * fb[2],
+        ]
     return [h00 * ya[i] + h10 * fa[i] + h01 * yb[i] + h11 * fb[i] for i in range(n)]
 
 
@@ -1237,6 +1273,9 @@ def simulate(
     racket_plane: Callable[[float], tuple[float, float, float, float, float, float]] = (
         getattr(racket, "_fast_plane", None) or _plane_from_state
     )
+    # The ball box farther than the racket's reach from every origin the racket can have
+    # over the step: no contact possible, skip the racket planes (the same events result).
+    racket_far = getattr(racket, "_far", None)
 
     def racket_state(tt: float) -> RacketState:
         rs = racket_cache.get(tt)
@@ -1288,7 +1327,7 @@ def simulate(
         if racket is not None:
             ta_r = max(t, racket.t_start)
             tb_r = min(t + h, racket.t_end)
-            if ta_r < tb_r:
+            if ta_r < tb_r and not (racket_far is not None and racket_far(lo, hi, ta_r, tb_r, racket_reach + 0.01)):
                 pl_a = racket_plane(ta_r)
                 pl_b = racket_plane(tb_r)
                 pa = pos((ta_r - t) / h)

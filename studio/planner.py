@@ -526,6 +526,8 @@ class StrikePlanner:
         self._row_scale = np.stack([self._half, L.velocity, L.acceleration, self._half, L.velocity], axis=1)  # (8, 5)
         self._row_lo = np.stack([L.lower, -L.velocity, -L.acceleration, L.lower, -L.velocity], axis=1)
         self._row_hi = np.stack([L.upper, L.velocity, L.acceleration, L.upper, L.velocity], axis=1)
+        tol = self.options.limit_tolerance * self._row_scale  # the 1 kHz check's bounds (fast path)
+        self._check_lo, self._check_hi = self._row_lo - tol, self._row_hi + tol
         # Fast evaluation buffer of the strike terms (p, n, v and Jacobians).
         q = ca.SX.sym("q", 8)
         qd = ca.SX.sym("qd", 8)
@@ -1241,6 +1243,8 @@ class _Context:
         component, time of the value, excess/limit)], the worst per (joint, component,
         segment). Command values are taken at t + dt/2, predicted ones at t."""
         pl = self.pl
+        if not (np.any(V > pl._check_hi) or np.any(V < pl._check_lo)):  # the common case: nothing beyond
+            return []
         rtol = pl.options.limit_tolerance
         excess = np.maximum(V - pl._row_hi[None], pl._row_lo[None] - V) / pl._row_scale[None]
         bad = np.argwhere(excess > rtol)
@@ -1286,7 +1290,10 @@ class _Context:
             slacks=np.array([max(0.0, ep - tol[0]), max(0.0, math.cos(tol[1]) - cosang), max(0.0, ev - tol[2])]),
         )
         score = float(np.sum(np.maximum(excess - 1.0, 0.0)))
-        viol = self.limit_violations(self.check_values(C, Z), t)
+        lo, hi = self.pl._check_lo, self.pl._check_hi
+        Zq = Z[..., 3:5]
+        beyond = np.any(C > hi[:, :3]) or np.any(C < lo[:, :3]) or np.any(Zq > hi[:, 3:]) or np.any(Zq < lo[:, 3:])
+        viol = self.limit_violations(self.check_values(C, Z), t) if beyond else []
         info["violations"] = viol
         if np.any(excess > 1.0):
             parts = []
