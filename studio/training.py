@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -38,6 +39,12 @@ import numpy as np
 
 from studio.errors import InvalidInputError
 from studio.serve import HandServe, TossSide
+
+# Ray >= 2.45 notices a driver started by ``uv run`` (as ``./dev`` does) and starts its
+# workers with ``uv run`` too, packaging the working directory; here that failed ("worker
+# startup repeatedly failed"). The workers run the driver's interpreter instead; a remote
+# cluster's nodes need the environment installed (``uv sync`` of this project).
+os.environ.setdefault("RAY_ENABLE_UV_RUN_RUNTIME_ENV", "0")
 
 SideChoice = Literal["right", "left", "both"]
 

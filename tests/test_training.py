@@ -49,6 +49,8 @@ def _cfg(tmp_path: Path, iterations: int) -> TrainConfig:
 
 
 def test_training_on_ray_streams_records_resumes_and_exports(tmp_path: Path) -> None:
+    import studio.training  # noqa: F401  (sets RAY_ENABLE_UV_RUN_RUNTIME_ENV=0 before ray is imported)
+
     ray = pytest.importorskip("ray")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, object_store_memory=80 * 1024 * 1024)
     try:
