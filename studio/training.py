@@ -251,10 +251,13 @@ def _train_on_ray(cfg: TrainConfig, todo: list[tuple[int, TossSide, int, Path]],
 
     started_here = not ray.is_initialized()
     if started_here:
-        if address == "local":
-            ray.init(include_dashboard=False, log_to_driver=False)
-        else:
-            ray.init(address=address, log_to_driver=False)
+        try:
+            if address == "local":
+                ray.init(include_dashboard=False, log_to_driver=False)
+            else:
+                ray.init(address=address, log_to_driver=False)
+        except Exception as exc:  # noqa: BLE001 - ray raises several unrelated types here
+            raise InvalidInputError(f"train: cannot start or reach the Ray cluster at {address!r}: {exc}") from exc
     logs: dict[int, Any] = {}
     folders = {i: run_dir for i, _, _, run_dir in todo}
     try:

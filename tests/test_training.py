@@ -79,3 +79,4 @@ def test_training_on_ray_streams_records_resumes_and_exports(tmp_path: Path) -> 
         assert all(r.reason == "already trained" for r in again)
     finally:
         ray.shutdown()
+
