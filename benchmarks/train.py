@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/train.py                       # chosen HeboConfig, 2 workers
     .venv/bin/python benchmarks/train.py --compare             # + HEBO defaults and CMA-ES
     .venv/bin/python benchmarks/train.py --compare --compare-evaluations 400
+    .venv/bin/python benchmarks/train.py --compare --skip-main --compare-evaluations 800 --compare-seeds 0 1 2
 
 Prints a table; the last line is one JSON object (task, evaluations, seconds, best_reward,
 legal, ...). ``--compare`` runs, at equal evaluations (``--compare-evaluations``, default
@@ -93,6 +94,7 @@ def main() -> None:
     ap.add_argument("--seed-serve", action="append", default=[], help="hand-designed serve JSON to seed HEBO with")
     ap.add_argument("--compare", action="store_true")
     ap.add_argument("--compare-evaluations", type=int, default=400)
+    ap.add_argument("--compare-seeds", type=int, nargs="+", default=[0], help="seeds of the comparison runs (README: 0 1 2 at 800 evaluations)")
     ap.add_argument("--skip-main", action="store_true", help="with --compare: skip the full-budget run")
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args()
@@ -133,17 +135,28 @@ def main() -> None:
         if args.compare:
             n = args.compare_evaluations
             iters = max(1, n // args.population)
-            runs: dict[str, Trace] = {}
-            runs["HEBO chosen config"], _ = run_hebo(args, cfg, iters, Path(tmp) / "cmp_chosen")
-            runs["HEBO defaults"], _ = run_hebo(args, HeboConfig.hebo_defaults(), iters, Path(tmp) / "cmp_default", overlap=False)
-            runs["CMA-ES (pop 20)"], _ = run_cma(args, iters * args.population)
             marks = [n // 4, n // 2, 3 * n // 4, n]
-            print(f"\nComparison at {iters * args.population} evaluations (task {args.task}, {args.side} toss): best reward so far / seconds")
-            print("| optimizer | " + " | ".join(f"{m} evals" for m in marks) + " |")
-            print("| --- |" + " --- |" * len(marks))
-            for name, tr in runs.items():
-                print(f"| {name} | " + " | ".join(f"{at(tr, m)[1]:+.3f} @ {at(tr, m)[0]:.0f} s" for m in marks) + " |")
-            out["compare"] = {name: {"evaluations": tr[-1][0], "seconds": round(tr[-1][1], 2), "best_reward": tr[-1][2]} for name, tr in runs.items()}
+            names = ("HEBO chosen config", "HEBO chosen config, sequential", "HEBO defaults", "CMA-ES (pop 20)")
+            finals: dict[str, list[tuple[float, float]]] = {name: [] for name in names}
+            for seed in args.compare_seeds:
+                a = argparse.Namespace(**{**vars(args), "seed": seed})
+                runs: dict[str, Trace] = {}
+                runs[names[0]], _ = run_hebo(a, cfg, iters, Path(tmp) / f"cmp_chosen_{seed}")
+                runs[names[1]], _ = run_hebo(a, cfg, iters, Path(tmp) / f"cmp_seq_{seed}", overlap=False)
+                runs[names[2]], _ = run_hebo(a, HeboConfig.hebo_defaults(), iters, Path(tmp) / f"cmp_default_{seed}", overlap=False)
+                runs[names[3]], _ = run_cma(a, iters * args.population)
+                print(f"\nComparison at {iters * args.population} evaluations (task {args.task}, {args.side} toss, seed {seed}): best reward so far / seconds")
+                print("| optimizer | " + " | ".join(f"{m} evals" for m in marks) + " |")
+                print("| --- |" + " --- |" * len(marks))
+                for name, tr in runs.items():
+                    print(f"| {name} | " + " | ".join(f"{at(tr, m)[1]:+.3f} @ {at(tr, m)[0]:.0f} s" for m in marks) + " |")
+                    finals[name].append((tr[-1][2], tr[-1][1]))
+            print(f"\nBest reward at {iters * args.population} evaluations over seeds {args.compare_seeds}")
+            print("| optimizer | " + " | ".join(f"seed {s_}" for s_ in args.compare_seeds) + " | mean |")
+            print("| --- |" + " --- |" * (len(args.compare_seeds) + 1))
+            for name, f in finals.items():
+                print(f"| {name} | " + " | ".join(f"{b:+.3f} / {sec:.0f} s" for b, sec in f) + f" | {np.mean([b for b, _ in f]):+.3f} |")
+            out["compare"] = {name: {"seeds": args.compare_seeds, "best_reward": [b for b, _ in f], "seconds": [round(sec, 2) for _, sec in f], "mean_best_reward": float(np.mean([b for b, _ in f]))} for name, f in finals.items()}
     print(json.dumps(out))
 
 
