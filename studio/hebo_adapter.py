@@ -365,8 +365,13 @@ class HeboAdapter:
         rec = np.unique(np.clip(rec, 0.0, 1.0), axis=0)
         seen = {tuple(r) for r in self.X[:m]}
         rec = np.array([r for r in rec if tuple(r) not in seen]).reshape(-1, self.dim)
-        if len(rec) < n:  # too few Pareto points: fill with Sobol points (as HEBO does)
-            rec = np.vstack([rec, self._sobol(n - len(rec), n_obs + 7919)])
+        if len(rec) < n:  # too few Pareto points: fill with Sobol points (as HEBO does), from a
+            # sequence scrambled with this call's key, so that a resumed batch does not redraw
+            # the fill points of the interrupted one
+            from torch.quasirandom import SobolEngine
+
+            fill = SobolEngine(self.dim, scramble=True, seed=int(key % (2**31))).draw(n - len(rec)).double().numpy()
+            rec = np.vstack([rec, fill])
         rng = np.random.default_rng(key)
         select = rng.choice(len(rec), n, replace=False).tolist()
         with torch.no_grad():

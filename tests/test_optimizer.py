@@ -287,12 +287,12 @@ def test_overlap_suggests_from_the_batches_before_the_previous_one(tmp_path: Pat
         return real(self, n, upto=upto, skip=skip)
 
     monkeypatch.setattr(HeboAdapter, "suggest", spy)
-    res = run(tmp_path / "lag", iterations=4)
+    res = run(tmp_path / "lag", iterations=4, overlap=True)
     # 2 seeds, batches of 4: batch i >= 1 is suggested from seeds + batches <= i - 2
     assert [upto for _, upto, _ in calls] == [2, 2, 6, 10]
     assert [seen for _, _, seen in calls] == [2, 2, 6, 10]  # batch i+1 is asked for before batch i is observed
     genomes = [tuple(r["genome"]) for r in read_log(tmp_path / "lag")]
     assert len(set(genomes)) == len(genomes) == res.evaluations  # the Sobol start does not repeat points
     calls.clear()
-    run(tmp_path / "sync", iterations=4, overlap=False)
+    run(tmp_path / "sync", iterations=4)  # the default: sequential
     assert [upto for _, upto, _ in calls] == [2, 6, 10, 14]
