@@ -81,6 +81,7 @@ class EvaluationContext:
     IPOPT fallback on). Training turns the fallback off (see :func:`training_context`)."""
     _tosses: dict[str, TossModel] = field(default_factory=dict)
     _toss_reports: dict[str, Any] = field(default_factory=dict)
+    _preparations: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
     def default(cls) -> EvaluationContext:
@@ -103,12 +104,11 @@ class EvaluationContext:
     def preparation(self, side: TossSide) -> Any:
         """The preparation phase before a side's toss (feeder pose ``q_flat`` to the
         toss's first command, then a hold): :class:`studio.planner.PreparationPhase`, cached."""
-        key = f"prep:{side}"
-        if key not in self._toss_reports:
+        if side not in self._preparations:
             from studio.planner import preparation_phase
 
-            self._toss_reports[key] = preparation_phase(self.robot, self.toss_model(side).primitive.u[0])
-        return self._toss_reports[key]
+            self._preparations[side] = preparation_phase(self.robot, self.toss_model(side).primitive.u[0])
+        return self._preparations[side]
 
     def warm_up(self, side: TossSide) -> None:
         """Build the toss model of ``side``, the planner and the collision model now

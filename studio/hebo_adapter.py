@@ -29,6 +29,7 @@ The quirks (measured on ``hebo`` 0.3.6 with pymoo 0.6.2) and what this adapter d
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import logging
 import warnings
@@ -134,6 +135,7 @@ def _import_hebo() -> dict[str, Any]:
     )  # fmt: skip
 
 
+@functools.cache
 def _vector_acq_problem_class() -> type:
     from pymoo.core.problem import Problem
 
@@ -155,16 +157,6 @@ def _vector_acq_problem_class() -> type:
                 out["G"] = v[:, self.acq.num_obj :].numpy()
 
     return VectorAcqProblem
-
-
-def _VectorAcqProblem(acq: Any, dim: int) -> Any:
-    global _VECTOR_PROBLEM
-    if _VECTOR_PROBLEM is None:
-        _VECTOR_PROBLEM = _vector_acq_problem_class()
-    return _VECTOR_PROBLEM(acq, dim)
-
-
-_VECTOR_PROBLEM: Any = None
 
 
 class HeboAdapter:
@@ -259,10 +251,12 @@ class HeboAdapter:
             np.random.set_state(np_state)
             torch.set_num_threads(threads)
 
-    def _sobol(self, n: int, skip: int) -> npt.NDArray[np.float64]:
+    def _sobol(self, n: int, skip: int, seed: int | None = None) -> npt.NDArray[np.float64]:
+        """``n`` scrambled Sobol points after the first ``skip`` (scrambled with ``seed``,
+        default the adapter's seed)."""
         from torch.quasirandom import SobolEngine
 
-        eng = SobolEngine(self.dim, scramble=True, seed=self.seed)
+        eng = SobolEngine(self.dim, scramble=True, seed=self.seed if seed is None else seed)
         if skip:
             eng.fast_forward(skip)
         return eng.draw(n).double().numpy()
@@ -343,7 +337,7 @@ class HeboAdapter:
 
         if cfg.vector_nsga:
             init = pd.concat([best_x, space.sample(cfg.es_pop)], axis=0).head(cfg.es_pop)[self.names].to_numpy(dtype=float)
-            prob: Any = _VectorAcqProblem(acq, self.dim)
+            prob: Any = _vector_acq_problem_class()(acq, self.dim)
             algo = h["NSGA2"](pop_size=cfg.es_pop, sampling=init, eliminate_duplicates=True)
         else:  # HEBO's own mixed-variable setup
             prob = h["BOProblem"](acq, space, None)
@@ -368,10 +362,7 @@ class HeboAdapter:
         if len(rec) < n:  # too few Pareto points: fill with Sobol points (as HEBO does), from a
             # sequence scrambled with this call's key, so that a resumed batch does not redraw
             # the fill points of the interrupted one
-            from torch.quasirandom import SobolEngine
-
-            fill = SobolEngine(self.dim, scramble=True, seed=int(key % (2**31))).draw(n - len(rec)).double().numpy()
-            rec = np.vstack([rec, fill])
+            rec = np.vstack([rec, self._sobol(n - len(rec), 0, seed=int(key % (2**31)))])
         rng = np.random.default_rng(key)
         select = rng.choice(len(rec), n, replace=False).tolist()
         with torch.no_grad():

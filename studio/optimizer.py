@@ -556,186 +556,169 @@ def optimize_serve(
         if s.side != side:
             raise InvalidInputError(f"seed serve {s.name!r} is for the {s.side} toss, the run is for the {side} toss")
     # the workers start first and initialize while this process loads the toss model and HEBO
-    pool = EvaluatorPool(side=side, task=task, workers=workers, min_legal_fraction=min_legal_fraction, evaluate=evaluate, context=context, ipopt_fallback=ipopt_fallback)
-    try:
-        return _optimize(
-            pool, t_start, side=side, task=task, run_dir=run_dir, context=context, seeds=seeds, iterations=iterations, population=population,
-            tosses=tosses, min_legal_fraction=min_legal_fraction, seed=seed, progress=progress, stop=stop, bounds=bounds, config=config,
-            resume=resume, top_k=top_k, final_tosses=final_tosses, evaluate=evaluate, ipopt_fallback=ipopt_fallback, on_record=on_record,
-            overlap=overlap,
-        )  # fmt: skip
-    finally:
-        pool.close()
+    with EvaluatorPool(side=side, task=task, workers=workers, min_legal_fraction=min_legal_fraction, evaluate=evaluate, context=context, ipopt_fallback=ipopt_fallback) as pool:
+        if bounds is None:
+            if context is not None:
+                toss = context.toss_model(side)
+            else:
+                from studio.toss import load_default_toss_model
 
+                toss = load_default_toss_model(side)
+            bounds = bounds_for_toss(toss)
+        if evaluate is None:
+            from studio.reward import task_weights
 
-def _optimize(
-    pool: EvaluatorPool, t_start: float, *, side: TossSide, task: str, run_dir: Path, context: Any, seeds: Sequence[HandServe], iterations: int,
-    population: int, tosses: int, min_legal_fraction: float, seed: int, progress: ProgressFn | None, stop: threading.Event | None,
-    bounds: GenomeBounds | None, config: HeboConfig, resume: bool, top_k: int, final_tosses: int, evaluate: EvaluateFn | None, ipopt_fallback: bool,
-    on_record: Callable[[dict[str, Any]], None] | None, overlap: bool,
-) -> OptimizationResult:  # fmt: skip
-    if bounds is None:
-        if context is not None:
-            toss = context.toss_model(side)
-        else:
-            from studio.toss import load_default_toss_model
+            task_weights(task)  # validate the name early
+        low, high = bounds.lows_highs()
+        penalty = -PLANNER_FAILURE_PENALTY if PLANNER_FAILURE_PENALTY < 0 else PLANNER_FAILURE_PENALTY
 
-            toss = load_default_toss_model(side)
-        bounds = bounds_for_toss(toss)
-    if evaluate is None:
-        from studio.reward import task_weights
+        run_dir = Path(run_dir)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        run_json = {
+            "schema": RUN_SCHEMA,
+            "side": side,
+            "task": task,
+            "seed": seed,
+            "iterations": iterations,
+            "population": population,
+            "tosses": tosses,
+            "min_legal_fraction": min_legal_fraction,
+            "bounds": _bounds_json(bounds),
+            "genes": list(GENE_NAMES),
+            "config": config.to_json(),
+            "ipopt_fallback": bool(ipopt_fallback),
+            "overlap": bool(overlap),
+            "seeds": [s.to_json() for s in seeds],
+        }
+        log_path = run_dir / "evaluations.jsonl"
+        records: list[EvaluationRecord] = []
+        if resume and (run_dir / "run.json").exists():
+            old = json.loads((run_dir / "run.json").read_text())
+            old.setdefault("ipopt_fallback", False)  # runs logged before these options existed
+            old.setdefault("overlap", False)
+            for key in ("side", "task", "seed", "population", "tosses", "bounds", "config", "min_legal_fraction", "ipopt_fallback", "overlap"):
+                if old.get(key) != json.loads(json.dumps(run_json[key])):
+                    raise InvalidInputError(f"resume: {run_dir / 'run.json'} has {key}={old.get(key)!r}, this call has {run_json[key]!r}")
+            records = _read_jsonl(log_path)
+        elif log_path.exists() and log_path.stat().st_size > 0:
+            if resume:
+                raise InvalidInputError(f"cannot resume {log_path}: {run_dir / 'run.json'} is missing")
+            raise InvalidInputError(f"{log_path} already holds a run: pass resume=True or use another run_dir")
+        (run_dir / "run.json").write_text(json.dumps(run_json, indent=2))
 
-        task_weights(task)  # validate the name early
-    low, high = bounds.lows_highs()
-    penalty = -PLANNER_FAILURE_PENALTY if PLANNER_FAILURE_PENALTY < 0 else PLANNER_FAILURE_PENALTY
+        opt = HeboAdapter(len(GENE_NAMES), seed=seed, config=config, penalty=penalty)
+        if records:
+            opt.observe(np.array([r.genome for r in records]), -np.array([r.reward for r in records]))
 
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    run_json = {
-        "schema": RUN_SCHEMA,
-        "side": side,
-        "task": task,
-        "seed": seed,
-        "iterations": iterations,
-        "population": population,
-        "tosses": tosses,
-        "min_legal_fraction": min_legal_fraction,
-        "bounds": _bounds_json(bounds),
-        "genes": list(GENE_NAMES),
-        "config": config.to_json(),
-        "ipopt_fallback": bool(ipopt_fallback),
-        "overlap": bool(overlap),
-        "seeds": [s.to_json() for s in seeds],
-    }
-    log_path = run_dir / "evaluations.jsonl"
-    records: list[EvaluationRecord] = []
-    if resume and (run_dir / "run.json").exists():
-        old = json.loads((run_dir / "run.json").read_text())
-        old.setdefault("ipopt_fallback", False)  # runs logged before these options existed
-        old.setdefault("overlap", False)
-        for key in ("side", "task", "seed", "population", "tosses", "bounds", "config", "min_legal_fraction", "ipopt_fallback", "overlap"):
-            if old.get(key) != json.loads(json.dumps(run_json[key])):
-                raise InvalidInputError(f"resume: {run_dir / 'run.json'} has {key}={old.get(key)!r}, this call has {run_json[key]!r}")
-        records = _read_jsonl(log_path)
-    elif log_path.exists() and log_path.stat().st_size > 0:
-        if resume:
-            raise InvalidInputError(f"cannot resume {log_path}: {run_dir / 'run.json'} is missing")
-        raise InvalidInputError(f"{log_path} already holds a run: pass resume=True or use another run_dir")
-    (run_dir / "run.json").write_text(json.dumps(run_json, indent=2))
+        timings = {"suggest": 0.0, "suggest_overlapped": 0.0, "evaluate": 0.0, "evaluate_cpu": 0.0, "final": 0.0}
+        total = len(seeds) + iterations * population
+        stopped = False
+        log = _Log(log_path)
 
-    opt = HeboAdapter(len(GENE_NAMES), seed=seed, config=config, penalty=penalty)
-    if records:
-        opt.observe(np.array([r.genome for r in records]), -np.array([r.reward for r in records]))
+        def best() -> tuple[float, ServeParams | None]:
+            if not records:
+                return -math.inf, None
+            r = max(records, key=lambda r: r.reward)
+            return r.reward, ServeParams.from_vector([r.params[g] for g in GENE_NAMES])
 
-    timings = {"suggest": 0.0, "suggest_overlapped": 0.0, "evaluate": 0.0, "evaluate_cpu": 0.0, "final": 0.0}
-    total = len(seeds) + iterations * population
-    stopped = False
-    log = _Log(log_path)
-
-    def best() -> tuple[float, ServeParams | None]:
-        if not records:
-            return -math.inf, None
-        r = max(records, key=lambda r: r.reward)
-        return r.reward, ServeParams.from_vector([r.params[g] for g in GENE_NAMES])
-
-    def run_batch(Z: npt.NDArray[np.float64], batch: int, sources: list[str], pool: EvaluatorPool, meanwhile: Callable[[], None] | None = None) -> None:
-        """Evaluate, log and observe the batch Z; ``meanwhile`` runs after the batch was
-        handed to the worker processes, before its results are collected."""
-        X = low + Z * (high - low)
-        start = len(records)
-        rng_seeds = [int(np.random.SeedSequence([seed, 1, start + i]).generate_state(1)[0]) for i in range(len(Z))]
-        t0 = time.perf_counter()
-        results = pool.map(X, tosses=tosses, rng_seeds=rng_seeds)
-        if meanwhile is not None:
-            meanwhile()
-        for i, (out, sec) in enumerate(results):
-            reward = out.reward if math.isfinite(out.reward) else -penalty
-            rec = EvaluationRecord(
-                index=start + i, batch=batch, source=sources[i], genome=[float(v) for v in Z[i]],
-                params={g: float(v) for g, v in zip(GENE_NAMES, X[i])}, reward=float(reward), legal=bool(out.legal),
-                status=out.status, failed_check=out.failed_check, legal_fraction=float(out.legal_fraction), seconds=float(sec),
-            )  # fmt: skip
-            log.write(rec)
-            if on_record is not None:
-                on_record(asdict(rec))
-            records.append(rec)
-            opt.observe(Z[i : i + 1], np.array([-reward]))
-            timings["evaluate_cpu"] += sec
-        timings["evaluate"] += time.perf_counter() - t0
-
-    ahead: dict[int, npt.NDArray[np.float64]] = {}
-
-    def usable(it: int) -> int:
-        """Observations batch ``it``'s suggestion is made from (a prefix of the log): all
-        of them, or with ``overlap`` those of the seeds and the batches up to it - 2 (batch
-        0 follows the seeds, nothing is in flight then)."""
-        if not overlap:
-            return len(records)
-        return sum(1 for r in records if r.batch <= max(it - 2, -1))
-
-    def report() -> None:
-        if progress is not None:
-            b, p = best()
-            progress(len(records), total, b, p)
-
-    try:
-        n_seed_done = sum(1 for r in records if r.batch == -1)
-        if n_seed_done < len(seeds):
-            todo = list(seeds)[n_seed_done:]
-            Z = np.array([s.params.normalize(bounds) for s in todo])
-            run_batch(Z, -1, [f"seed:{s.name}" for s in todo], pool)
-            report()
-        for it in range(iterations):
-            done = sum(1 for r in records if r.batch == it)
-            missing = population - done
-            if missing <= 0:
-                continue
-            if stop is not None and stop.is_set():
-                stopped = True
-                break
+        def run_batch(Z: npt.NDArray[np.float64], batch: int, sources: list[str], pool: EvaluatorPool, meanwhile: Callable[[], None] | None = None) -> None:
+            """Evaluate, log and observe the batch Z; ``meanwhile`` runs after the batch was
+            handed to the worker processes, before its results are collected."""
+            X = low + Z * (high - low)
+            start = len(records)
+            rng_seeds = [int(np.random.SeedSequence([seed, 1, start + i]).generate_state(1)[0]) for i in range(len(Z))]
             t0 = time.perf_counter()
-            Z = ahead.pop(it, None)
-            if Z is None or len(Z) != missing:
-                Z = opt.suggest(missing, upto=usable(it), skip=len(records))
-            timings["suggest"] += time.perf_counter() - t0
-
-            def suggest_next(nxt: int = it + 1) -> None:
-                if nxt < iterations and not (stop is not None and stop.is_set()):
-                    t1 = time.perf_counter()
-                    ahead[nxt] = opt.suggest(population, upto=usable(nxt), skip=len(records) + len(Z))
-                    timings["suggest"] += time.perf_counter() - t1
-                    timings["suggest_overlapped"] += time.perf_counter() - t1
-
-            run_batch(Z, it, ["hebo"] * missing, pool, meanwhile=suggest_next if overlap else None)
-            report()
-
-        # final pick: top-k distinct candidates, re-evaluated on fresh tosses
-        t0 = time.perf_counter()
-        candidates: list[FinalCandidate] = []
-        if records and top_k > 0:
-            order = sorted(records, key=lambda r: (-r.reward, r.index))
-            picked: list[EvaluationRecord] = []
-            for r in order:
-                if all(not np.allclose(r.genome, q.genome, atol=1e-9) for q in picked):
-                    picked.append(r)
-                if len(picked) == top_k:
-                    break
-            Xf = np.array([[r.params[g] for g in GENE_NAMES] for r in picked])
-            fseeds = [int(np.random.SeedSequence([seed, 2, k]).generate_state(1)[0]) for k in range(len(picked))]
-            for r, (out, _sec) in zip(picked, pool.map(Xf, tosses=final_tosses, rng_seeds=fseeds)):
-                rewards = out.rewards if out.rewards else (out.reward,)
-                candidates.append(
-                    FinalCandidate(ServeParams.from_vector([r.params[g] for g in GENE_NAMES]), tuple(r.genome), r.reward, float(out.reward), bool(out.legal), float(out.legal_fraction), tuple(rewards))
+            results = pool.map(X, tosses=tosses, rng_seeds=rng_seeds)
+            if meanwhile is not None:
+                meanwhile()
+            for i, (out, sec) in enumerate(results):
+                reward = out.reward if math.isfinite(out.reward) else -penalty
+                rec = EvaluationRecord(
+                    index=start + i, batch=batch, source=sources[i], genome=[float(v) for v in Z[i]],
+                    params={g: float(v) for g, v in zip(GENE_NAMES, X[i])}, reward=float(reward), legal=bool(out.legal),
+                    status=out.status, failed_check=out.failed_check, legal_fraction=float(out.legal_fraction), seconds=float(sec),
                 )  # fmt: skip
-            candidates.sort(key=lambda c: -c.mean_reward)
-        timings["final"] = time.perf_counter() - t0
-    finally:
-        log.close()
+                log.write(rec)
+                if on_record is not None:
+                    on_record(asdict(rec))
+                records.append(rec)
+                opt.observe(Z[i : i + 1], np.array([-reward]))
+                timings["evaluate_cpu"] += sec
+            timings["evaluate"] += time.perf_counter() - t0
 
-    summary = candidates[0] if candidates else None
-    best_serve = HandServe(name=f"{task}_{side}_hebo_s{seed}", side=side, params=summary.params, task=task, notes=f"HEBO run {run_dir.name}: mean reward {summary.mean_reward:+.3f} over {len(summary.rewards)} tosses, legal fraction {summary.legal_fraction:.2f}") if summary else None  # fmt: skip
-    timings["total"] = time.perf_counter() - t_start
-    return OptimizationResult(
-        best=best_serve, summary=summary, candidates=tuple(candidates), history=np.array([r.reward for r in records], dtype=float),
-        evaluations=len(records), stopped=stopped, timings=timings, run_dir=run_dir, observed_X=opt.X, observed_y=opt.y,
-    )  # fmt: skip
+        ahead: dict[int, npt.NDArray[np.float64]] = {}
+
+        def usable(it: int) -> int:
+            """Observations batch ``it``'s suggestion is made from (a prefix of the log): all
+            of them, or with ``overlap`` those of the seeds and the batches up to it - 2 (batch
+            0 follows the seeds, nothing is in flight then)."""
+            if not overlap:
+                return len(records)
+            return sum(1 for r in records if r.batch <= max(it - 2, -1))
+
+        def report() -> None:
+            if progress is not None:
+                b, p = best()
+                progress(len(records), total, b, p)
+
+        try:
+            n_seed_done = sum(1 for r in records if r.batch == -1)
+            if n_seed_done < len(seeds):
+                todo = list(seeds)[n_seed_done:]
+                Z = np.array([s.params.normalize(bounds) for s in todo])
+                run_batch(Z, -1, [f"seed:{s.name}" for s in todo], pool)
+                report()
+            for it in range(iterations):
+                done = sum(1 for r in records if r.batch == it)
+                missing = population - done
+                if missing <= 0:
+                    continue
+                if stop is not None and stop.is_set():
+                    stopped = True
+                    break
+                t0 = time.perf_counter()
+                Z = ahead.pop(it, None)
+                if Z is None or len(Z) != missing:
+                    Z = opt.suggest(missing, upto=usable(it), skip=len(records))
+                timings["suggest"] += time.perf_counter() - t0
+
+                def suggest_next(nxt: int = it + 1) -> None:
+                    if nxt < iterations and not (stop is not None and stop.is_set()):
+                        t1 = time.perf_counter()
+                        ahead[nxt] = opt.suggest(population, upto=usable(nxt), skip=len(records) + len(Z))
+                        timings["suggest"] += time.perf_counter() - t1
+                        timings["suggest_overlapped"] += time.perf_counter() - t1
+
+                run_batch(Z, it, ["hebo"] * missing, pool, meanwhile=suggest_next if overlap else None)
+                report()
+
+            # final pick: top-k distinct candidates, re-evaluated on fresh tosses
+            t0 = time.perf_counter()
+            candidates: list[FinalCandidate] = []
+            if records and top_k > 0:
+                order = sorted(records, key=lambda r: (-r.reward, r.index))
+                picked: list[EvaluationRecord] = []
+                for r in order:
+                    if all(not np.allclose(r.genome, q.genome, atol=1e-9) for q in picked):
+                        picked.append(r)
+                    if len(picked) == top_k:
+                        break
+                Xf = np.array([[r.params[g] for g in GENE_NAMES] for r in picked])
+                fseeds = [int(np.random.SeedSequence([seed, 2, k]).generate_state(1)[0]) for k in range(len(picked))]
+                for r, (out, _sec) in zip(picked, pool.map(Xf, tosses=final_tosses, rng_seeds=fseeds)):
+                    rewards = out.rewards if out.rewards else (out.reward,)
+                    candidates.append(
+                        FinalCandidate(ServeParams.from_vector([r.params[g] for g in GENE_NAMES]), tuple(r.genome), r.reward, float(out.reward), bool(out.legal), float(out.legal_fraction), tuple(rewards))
+                    )  # fmt: skip
+                candidates.sort(key=lambda c: -c.mean_reward)
+            timings["final"] = time.perf_counter() - t0
+        finally:
+            log.close()
+
+        summary = candidates[0] if candidates else None
+        best_serve = HandServe(name=f"{task}_{side}_hebo_s{seed}", side=side, params=summary.params, task=task, notes=f"HEBO run {run_dir.name}: mean reward {summary.mean_reward:+.3f} over {len(summary.rewards)} tosses, legal fraction {summary.legal_fraction:.2f}") if summary else None  # fmt: skip
+        timings["total"] = time.perf_counter() - t_start
+        return OptimizationResult(
+            best=best_serve, summary=summary, candidates=tuple(candidates), history=np.array([r.reward for r in records], dtype=float),
+            evaluations=len(records), stopped=stopped, timings=timings, run_dir=run_dir, observed_X=opt.X, observed_y=opt.y,
+        )  # fmt: skip

@@ -1243,8 +1243,6 @@ class _Context:
         component, time of the value, excess/limit)], the worst per (joint, component,
         segment). Command values are taken at t + dt/2, predicted ones at t."""
         pl = self.pl
-        if not (np.any(V > pl._check_hi) or np.any(V < pl._check_lo)):  # the common case: nothing beyond
-            return []
         rtol = pl.options.limit_tolerance
         excess = np.maximum(V - pl._row_hi[None], pl._row_lo[None] - V) / pl._row_scale[None]
         bad = np.argwhere(excess > rtol)
@@ -1290,7 +1288,7 @@ class _Context:
             slacks=np.array([max(0.0, ep - tol[0]), max(0.0, math.cos(tol[1]) - cosang), max(0.0, ev - tol[2])]),
         )
         score = float(np.sum(np.maximum(excess - 1.0, 0.0)))
-        lo, hi = self.pl._check_lo, self.pl._check_hi
+        lo, hi = self.pl._check_lo, self.pl._check_hi  # fast path: most plans have nothing beyond
         Zq = Z[..., 3:5]
         beyond = np.any(C > hi[:, :3]) or np.any(C < lo[:, :3]) or np.any(Zq > hi[:, 3:]) or np.any(Zq < lo[:, 3:])
         viol = self.limit_violations(self.check_values(C, Z), t) if beyond else []
