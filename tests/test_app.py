@@ -134,6 +134,9 @@ def test_open_request_from_the_dashboard_loads_the_serve_once(app: StudioApp) ->
     (app.library_dir / OPEN_REQUEST_NAME).write_text("{not json")
     assert not app.poll_open_request()
     assert "Open request ignored" in app.message_md.content and OPEN_REQUEST_NAME in app.message_md.content
+    (app.library_dir / OPEN_REQUEST_NAME).write_text(json.dumps({"schema": "serve-studio/open-request@1", "id": "../x", "nonce": "n1"}))
+    assert not app.poll_open_request()
+    assert "id" in app.message_md.content and "../x" in app.message_md.content  # the bad field is named
     with pytest.raises(InvalidInputError):
         request_open(app.library_dir, "no-such-serve")
 

@@ -70,6 +70,7 @@ def test_corrupt_index_is_rejected_with_file_and_field(tmp_path: Path, evaluatio
         (lambda d: d["serves"][0].__setitem__("id", "../evil"), "serves[0].id"),
         (lambda d: d["serves"][0]["params"].__setitem__("tau", None), "params.tau"),
         (lambda d: d["serves"][0].pop("legal"), "serves[0]"),
+        (lambda d: d["serves"][0].__setitem__("t_toss", -0.5), "serves[0].t_toss"),
     ]:
         bad = json.loads(json.dumps(doc))
         mutate(bad)
@@ -87,6 +88,9 @@ def test_arrays_are_never_unpickled(tmp_path: Path, evaluation) -> None:  # type
     path = tmp_path / entry.data["arrays"]
     np.savez(path, t=np.array([object()], dtype=object), u=np.zeros((1, 8)), q=np.zeros((1, 8)), ball_t=np.zeros(1), ball_p=np.zeros((1, 3)))
     with pytest.raises(DataFileError, match=entry.data["arrays"]):
+        entry.arrays()
+    np.savez(path, t=np.arange(3.0), u=np.zeros((3, 8)), q=np.zeros((3, 8)), ball_t=np.zeros(1), ball_p=np.zeros((1, 3)), t_toss=np.array(9.0))
+    with pytest.raises(DataFileError, match="t_toss"):  # the toss must start within the arrays' time span
         entry.arrays()
     np.savez(path, t=np.zeros(3), u=np.zeros((2, 8)), q=np.zeros((3, 8)), ball_t=np.zeros(1), ball_p=np.zeros((1, 3)))
     with pytest.raises(DataFileError, match="'u' and 'q'"):
