@@ -124,6 +124,9 @@ def main() -> None:
             ]
             slow = sorted(r["seconds"] for r in log)
             rows.append(("evaluation time median / p95 / max", f"{1000 * slow[len(slow) // 2]:.0f} / {1000 * slow[int(0.95 * len(slow))]:.0f} / {1000 * slow[-1]:.0f} ms"))
+            for status in sorted({r["status"] for r in log}):
+                sec = sorted(r["seconds"] for r in log if r["status"] == status)
+                rows.append((f"  status {status}: count, median, sum", f"{len(sec)}, {1000 * sec[len(sec) // 2]:.0f} ms, {sum(sec):.1f} s"))
             print(f"\nHEBO training, task {args.task}, {args.side} toss, {args.iterations} x {args.population}, {args.workers} workers")
             print("| what | figure |\n| --- | --- |")
             for k, v in rows:

@@ -83,6 +83,11 @@ class HeboConfig:
     0.60 s on 2 cores), but the optimizer suggests while its workers evaluate
     (``overlap``): there two threads oversubscribe the cores and the 2000-evaluation
     run took 111.6 s instead of 79.6 s."""
+    fast_gp: bool = True
+    """Fit and query HEBO's GP through :class:`studio.hebo_gp.FastGP` (the same model, priors,
+    fit and random draws in plain torch, exact posterior variance) instead of gpytorch:
+    on 256 points a 60-epoch fit takes ~0.28 s instead of ~0.50 s and an acquisition call
+    on 48 points ~0.4 ms instead of ~2 ms."""
     vector_nsga: bool = True
     """Run NSGA-II on plain float vectors (pymoo's SBX/PM operators, numpy duplicate
     elimination) instead of HEBO's mixed-variable setup (the same real-valued operators
@@ -103,7 +108,7 @@ class HeboConfig:
     @classmethod
     def hebo_defaults(cls) -> HeboConfig:
         """HEBO 0.3.6's own settings (no cap, NSGA-II 100 x 100 on mixed variables, 100 GP epochs, one torch thread)."""
-        return cls(max_train=None, es_pop=100, es_iters=100, gp_epochs=100, vector_nsga=False, torch_threads=1)
+        return cls(max_train=None, es_pop=100, es_iters=100, gp_epochs=100, vector_nsga=False, fast_gp=False, torch_threads=1)
 
     def to_json(self) -> dict[str, Any]:
         return {name: getattr(self, name) for name in self.__slots__}  # type: ignore[attr-defined]
@@ -308,8 +313,15 @@ class HeboAdapter:
         X, Xe = space.transform(Xdf)
 
         def fit(y_t: Any) -> Any:
-            model = h["get_model"]("gp", space.num_numeric, space.num_categorical, 1, **self.hebo.model_config)
+            if cfg.fast_gp:
+                from studio.hebo_gp import FastGP
+
+                model = FastGP(space.num_numeric, space.num_categorical, 1, **self.hebo.model_config)
+            else:
+                model = h["get_model"]("gp", space.num_numeric, space.num_categorical, 1, **self.hebo.model_config)
             model.fit(X, Xe, y_t)
+            if cfg.fast_gp and (model.failed_steps or any(model.jitters_used)):
+                LOG.debug("hebo: GP fit needed jitter up to %g (%d epochs skipped)", max(model.jitters_used, default=0.0), model.failed_steps)
             return model
 
         try:  # HEBO's target warping, then its fallback on the raw targets

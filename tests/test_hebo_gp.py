@@ -1,0 +1,106 @@
+"""FastGP against HEBO's gpytorch GP: same loss, gradient, seeded fit, predictions and suggestions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from studio.hebo_adapter import HeboAdapter, HeboConfig
+from studio.hebo_gp import FastGP
+
+CONF = {"lr": 0.01, "noise_lb": 8e-4, "pred_likeli": False, "verbose": False}
+
+
+def _data(n: int = 120, d: int = 5, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    rng = np.random.default_rng(seed)
+    X = rng.random((n, d))
+    y = ((X - 0.3) ** 2).sum(1, keepdims=True) + 0.05 * rng.standard_normal((n, 1))
+    y[: n // 6] = 3.0  # a block of identical penalty targets, as failed plans give
+    return torch.tensor(X, dtype=torch.float32), torch.tensor(y, dtype=torch.float32)
+
+
+def _hebo_gp(X: torch.Tensor, y: torch.Tensor, epochs: int, seed: int) -> object:
+    from hebo.models.model_factory import get_model
+
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    g = get_model("gp", X.shape[1], 0, 1, num_epochs=epochs, **CONF)
+    g.fit(X, torch.zeros(len(X), 0, dtype=torch.long), y)
+    return g
+
+
+def _fast_gp(X: torch.Tensor, y: torch.Tensor, epochs: int, seed: int) -> FastGP:
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    f = FastGP(X.shape[1], 0, 1, num_epochs=epochs, **CONF)
+    f.fit(X, torch.zeros(len(X), 0, dtype=torch.long), y)
+    return f
+
+
+def _raw(f: FastGP) -> list[torch.Tensor]:
+    return [f.raw_noise, f.raw_constant, f.raw_outputscale, f.raw_lengthscale]
+
+
+def test_loss_and_gradient_equal_gpytorch_marginal_likelihood() -> None:
+    import gpytorch
+
+    X, y = _data()
+    g, f = _hebo_gp(X, y, 0, 1), _fast_gp(X, y, 0, 1)
+    params = list(g.gp.parameters())  # noise, mean, output scale, length scales: the same order
+    gen = torch.Generator().manual_seed(7)
+    with torch.no_grad():
+        for a, b in zip(_raw(f), params, strict=True):
+            assert torch.equal(a.detach().reshape(-1), b.detach().reshape(-1))  # same initialization
+            step = 0.4 * torch.randn(a.shape, generator=gen)
+            a.add_(step)
+            b.add_(step.reshape(b.shape))
+    g.gp.train()
+    g.lik.train()
+    mll = gpytorch.mlls.ExactMarginalLogLikelihood(g.lik, g.gp)
+    lg = -mll(g.gp(g.Xc, g.Xe), g.y.squeeze())
+    lg.backward()
+    lf = f.loss()
+    lf.backward()
+    assert float(lf) == pytest.approx(float(lg), rel=1e-5)
+    for a, b in zip(_raw(f), params, strict=True):
+        np.testing.assert_allclose(a.grad.reshape(-1).numpy(), b.grad.reshape(-1).numpy(), rtol=2e-3, atol=2e-6)
+
+
+def test_seeded_fit_and_predictions_match_hebo() -> None:
+    X, y = _data(n=150, d=6, seed=2)
+    g, f = _hebo_gp(X, y, 30, 5), _fast_gp(X, y, 30, 5)
+    for a, b in zip(_raw(f), g.gp.parameters(), strict=True):
+        np.testing.assert_allclose(a.detach().reshape(-1).numpy(), b.detach().reshape(-1).numpy(), atol=2e-4)
+    Xs = torch.rand(40, 6, generator=torch.Generator().manual_seed(3))
+    mg, vg = g.predict(Xs, torch.zeros(40, 0, dtype=torch.long))
+    mf, vf = f.predict(Xs, torch.zeros(40, 0, dtype=torch.long))
+    np.testing.assert_allclose(mf.numpy(), mg.detach().numpy(), atol=1e-4)
+    np.testing.assert_allclose(vf.numpy(), vg.detach().numpy(), rtol=1e-3, atol=1e-6)
+    np.testing.assert_allclose(f.noise.numpy(), g.noise.numpy(), rtol=1e-4)
+    # the posterior interpolates: small variance at a training point, prior-sized far away
+    _, v_train = f.predict(X[:1], None)
+    _, v_far = f.predict(torch.full((1, 6), 5.0), None)
+    assert float(v_train) < 0.1 * float(v_far)
+
+
+def test_adapter_suggestions_identical_with_either_gp() -> None:
+    rng = np.random.default_rng(4)
+    X = rng.random((60, 4))
+    y = ((X - 0.6) ** 2).sum(1)
+    y[rng.random(60) < 0.2] = 10.0
+    out = []
+    for fast in (False, True):
+        a = HeboAdapter(4, seed=3, config=HeboConfig(fast_gp=fast, gp_epochs=15, es_pop=16, es_iters=5))
+        a.observe(X, y)
+        out.append(a.suggest(6))
+    np.testing.assert_allclose(out[0], out[1], atol=1e-6)
+
+
+def test_bad_input_rejected() -> None:
+    with pytest.raises(ValueError, match="numerical inputs"):
+        FastGP(3, 1, 1)
+    X, y = _data(n=20, d=3)
+    y[3] = float("nan")
+    with pytest.raises(ValueError, match="finite"):
+        FastGP(3, 0, 1).fit(X, torch.zeros(20, 0, dtype=torch.long), y)
