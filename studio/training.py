@@ -18,6 +18,9 @@ Where the runs execute:
   local run folder, so the run folders, the library and resuming work as in local mode
   (the nodes need no shared file system).
 
+``exported.json`` in a finished run folder holds the verdict on the mean toss, the summary
+row and the chosen serve (hand-serve JSON, so ``serve-studio evaluate`` reproduces it).
+
 Resume: a run whose folder holds ``exported.json`` is finished and skipped; a run with a
 partial ``evaluations.jsonl`` continues without repeating an evaluation (in Ray mode the
 partial log is sent to the task). Records in flight when the driver is killed are lost
@@ -185,7 +188,8 @@ def _finish(index: int, run_dir: Path, seed: int, best: HandServe | None, cfg: T
     ev = evaluate_serve(best, context, task=cfg.task)
     row = _row(ev, cfg.task) if ev.legal else {}
     entry_id = library.add(ev, provenance={"kind": "hebo", "run": str(run_dir), "seed": seed}, task=cfg.task, preparation=context.preparation(best.side)).id if ev.legal else None
-    (run_dir / "exported.json").write_text(json.dumps({"id": entry_id, "legal": bool(ev.legal), "reward": float(ev.reward.total), "row": row, "reason": ev.reason}))
+    done = {"id": entry_id, "legal": bool(ev.legal), "reward": float(ev.reward.total), "row": row, "reason": ev.reason, "serve": best.to_json()}
+    (run_dir / "exported.json").write_text(json.dumps(done, allow_nan=False) if math.isfinite(done["reward"]) else json.dumps({**done, "reward": None}))
     return TrainedServe(index, run_dir, bool(ev.legal), float(ev.reward.total), row, entry_id, seconds, "" if ev.legal else ev.reason)
 
 
@@ -194,7 +198,8 @@ def _already(index: int, run_dir: Path) -> TrainedServe | None:
     if not done.exists():
         return None
     d = json.loads(done.read_text())
-    return TrainedServe(index, run_dir, bool(d.get("legal", d.get("id") is not None)), float(d.get("reward", math.nan)), dict(d.get("row", {})), d.get("id"), 0.0, "already trained")
+    reward = d.get("reward")
+    return TrainedServe(index, run_dir, bool(d.get("legal", d.get("id") is not None)), math.nan if reward is None else float(reward), dict(d.get("row", {})), d.get("id"), 0.0, "already trained")
 
 
 def train_serves(

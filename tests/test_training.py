@@ -9,6 +9,7 @@ import pytest
 
 from studio.errors import InvalidInputError
 from studio.library import ServeLibrary
+from studio.serve import serve_from_json
 from studio.training import PAPER_TABLE_II_SIM, TrainConfig, TrainedServe, summary_table, train_serves
 
 
@@ -69,7 +70,9 @@ def test_training_on_ray_streams_records_resumes_and_exports(tmp_path: Path) -> 
             lines = [json.loads(x) for x in (r.run_dir / "evaluations.jsonl").read_text().splitlines()]
             assert [x["index"] for x in lines] == list(range(5))  # seed + 2 x 2, nothing repeated
             assert json.loads((r.run_dir / "run.json").read_text())["task"] == "topspin_velocity"
-            assert (r.run_dir / "exported.json").exists()
+            done = json.loads((r.run_dir / "exported.json").read_text())
+            chosen = serve_from_json(done["serve"])  # the chosen serve, reproducible from the run folder
+            assert chosen.side == "right" and done["legal"] == r.legal
         first = [json.loads(x) for x in (results[0].run_dir / "evaluations.jsonl").read_text().splitlines()]
         assert [x["batch"] for x in first] == [-1, 0, 0, 1, 1]  # the local batch kept, the Ray task went on
         entries = ServeLibrary(tmp_path / "lib").entries()
