@@ -555,6 +555,20 @@ class StrikePlanner:
         hbuf.set_res(0, memoryview(self._hess_out))
         self._hess_buf = hbuf
         self._ipopt_cache: dict[int, tuple[ca.Function, dict[str, slice]]] = {}
+        # Free response on the 1 kHz grid: exp(lam j dt), lam = -zeta wn + i wd (under-damped joints).
+        dyn = self.dynamics
+        self._under = bool(np.all(dyn.zeta < 1.0 - 1e-6))
+        self._lam = -dyn.zeta * dyn.wn + 1j * dyn.wn * np.sqrt(np.abs(1.0 - dyn.zeta**2))
+        self._exp_re, self._exp_im = np.ones((1, 8)), np.zeros((1, 8))
+
+    def _exp_steps(self, count: int) -> tuple[FloatArray, FloatArray]:
+        """Real and imaginary parts of exp(lam j dt) (count, 8), j = 0..count-1 (cached,
+        grown on demand; real arrays because numpy's complex product is ~6x slower)."""
+        if len(self._exp_re) < count:
+            j = np.arange(max(count, 2 * len(self._exp_re)))[:, None]
+            e = np.exp(self._lam[None, :] * (j * self.options.dt))
+            self._exp_re, self._exp_im = np.ascontiguousarray(e.real), np.ascontiguousarray(e.imag)
+        return self._exp_re, self._exp_im
 
     # ---------------------------------------------------------------- kinematics
     def _terms(self, q: FloatArray, qd: FloatArray) -> tuple[FloatArray, ...]:
@@ -1171,26 +1185,42 @@ class _Context:
         Z = g.T[..., 0] + np.einsum("ikcj,ij->ikc", g.T[..., 1:], z)  # (8, n+1, 5)
         return np.transpose(Z, (1, 0, 2))
 
-    def chain_at(self, z: FloatArray, times: FloatArray, *, commands_only: bool = False) -> FloatArray:
+    def chain_at(self, z: FloatArray, times: FloatArray, *, commands_only: bool = False, on_grid: bool = False) -> FloatArray:
         """Exact chain state Z = [u, u', u'', q, q'] (N, 8, 5) at times (N,) [s] for the
-        scaled jerks z (8, n); after tau_f the command rests at u_tauf (zero jerk)."""
+        scaled jerks z (8, n); after tau_f the command rests at u_tauf (zero jerk).
+        ``on_grid``: times are k dt, k = 0..N-1 (the 1 kHz output), which lets the free
+        response come from a cached table (exp(lam d) = exp(lam j dt) exp(lam phi_k) with
+        d = j dt + phi_k, phi_k the offset of segment k's first sample)."""
         g, pl, n = self.get_grid(), self.pl, self.n
         Zb = self.boundary_states(z)  # (n+1, 8, 5)
         jerk = np.vstack([(z * pl._jmax[:, None]).T, np.zeros((1, 8))])  # (n+1, 8)
         k = np.clip(np.searchsorted(g.tb, times, side="right") - 1, 0, n)
         d = (times - g.tb[k])[:, None]  # (N, 1)
-        Zk = Zb[k]
-        jk = jerk[k]
-        u = Zk[..., 0] + Zk[..., 1] * d + 0.5 * Zk[..., 2] * d**2 + jk * d**3 / 6.0
-        ud = Zk[..., 1] + Zk[..., 2] * d + 0.5 * jk * d**2
-        udd = Zk[..., 2] + jk * d
+        Z0, Z1, Z2, Z3, Z4 = np.transpose(Zb, (2, 0, 1))  # per segment start (n+1, 8) each
+        z0, z1, z2, jk = Z0.take(k, axis=0), Z1.take(k, axis=0), Z2.take(k, axis=0), jerk.take(k, axis=0)
+        jd = jk * d
+        udd = z2 + jd
+        ud = z1 + d * (z2 + 0.5 * jd)
+        u = z0 + d * (z1 + d * (0.5 * z2 + jd / 6.0))
         if commands_only:
             return np.stack([u, ud, udd], axis=-1)
         wn, zeta = pl.dynamics.wn, pl.dynamics.zeta
         c1, c3, c4 = _particular_coefficients(wn, zeta)
-        e0 = Zk[..., 3] - (Zk[..., 0] - c1 * Zk[..., 1] + c3 * Zk[..., 2] + c4 * jk)
-        e0d = Zk[..., 4] - (Zk[..., 1] - c1 * Zk[..., 2] + c3 * jk)
-        es, ec = _free_response_terms(wn, zeta, d)  # e^{-a d} s(d), e^{-a d} c(d): (N, 8)
+        # tracking error e = q - q_particular and its rate at each segment start, gathered
+        e0 = (Z3 - (Z0 - c1 * Z1 + c3 * Z2 + c4 * jerk)).take(k, axis=0)
+        e0d = (Z4 - (Z1 - c1 * Z2 + c3 * jerk)).take(k, axis=0)
+        if on_grid and pl._under and len(times):
+            first = np.searchsorted(k, np.arange(n + 1))  # index of each segment's first sample
+            first_of = first[k]
+            j = np.arange(len(times)) - first_of
+            phi = times[np.minimum(first, len(times) - 1)] - g.tb  # (n+1,) offset of that sample
+            er, ei = pl._exp_steps(int(j.max()) + 1)
+            er, ei = er.take(j, axis=0), ei.take(j, axis=0)
+            p = np.exp(pl._lam[None, :] * phi[:, None])  # (n+1, 8)
+            pr, pi = p.real.take(k, axis=0), p.imag.take(k, axis=0)
+            es, ec = (er * pi + ei * pr) / (wn * np.sqrt(1.0 - zeta**2)), er * pr - ei * pi
+        else:
+            es, ec = _free_response_terms(wn, zeta, d)  # e^{-a d} s(d), e^{-a d} c(d): (N, 8)
         a = zeta * wn
         out = np.empty(u.shape + (5,))
         out[..., 0] = u
@@ -1212,7 +1242,7 @@ class _Context:
         dt = self.pl.options.dt
         N = int(math.floor(self.target.tau_f / dt + 1e-9)) + 1
         t = np.arange(N) * dt
-        Z = self.chain_at(z, t)
+        Z = self.chain_at(z, t, on_grid=True)
         C = self.chain_at(z, t + 0.5 * dt, commands_only=True)
         return t, C, Z
 
@@ -1289,8 +1319,10 @@ class _Context:
         )
         score = float(np.sum(np.maximum(excess - 1.0, 0.0)))
         lo, hi = self.pl._check_lo, self.pl._check_hi  # fast path: most plans have nothing beyond
-        Zq = Z[..., 3:5]
-        beyond = np.any(C > hi[:, :3]) or np.any(C < lo[:, :3]) or np.any(Zq > hi[:, 3:]) or np.any(Zq < lo[:, 3:])
+        N = len(t)  # per-(joint, component) extremes over time: column reductions of contiguous arrays
+        cmax, cmin = C.reshape(N, 24).max(axis=0).reshape(8, 3), C.reshape(N, 24).min(axis=0).reshape(8, 3)
+        zmax, zmin = Z.reshape(N, 40).max(axis=0).reshape(8, 5)[:, 3:], Z.reshape(N, 40).min(axis=0).reshape(8, 5)[:, 3:]
+        beyond = N > 0 and bool(np.any(cmax > hi[:, :3]) or np.any(cmin < lo[:, :3]) or np.any(zmax > hi[:, 3:]) or np.any(zmin < lo[:, 3:]))
         viol = self.limit_violations(self.check_values(C, Z), t) if beyond else []
         info["violations"] = viol
         if np.any(excess > 1.0):
