@@ -838,19 +838,26 @@ class _Context:
         With ``full_normal`` the normal part is the 3-vector (n - n_tau)/dphi (r (9,)),
         whose only zero is n = +n_tau (used far from the target; the tangential form
         also vanishes at the antipode)."""
-        tg = self.target
-        p, nv, v, jp, jn, jvq, jvqd = self.pl._terms(s[:8], s[8:])
-        if full_normal:
-            rn, jnn = (nv - tg.normal) / self.tol[1], jn / self.tol[1]
-        else:
-            rn, jnn = self.tangent @ nv / self.tol[1], self.tangent @ jn / self.tol[1]
-        k = rn.size
-        r = np.concatenate([(p - tg.position) / self.tol[0], rn, (v - tg.velocity) / self.tol[2]])
+        tg, pl = self.target, self.pl
+        pl._terms_in[:] = s  # the casadi buffer: read in place (the outputs below are new arrays)
+        pl._terms_trigger()
+        o = pl._terms_out
+        jac = o[9:105].reshape(4, 8, 3)  # column-major (3, 8) blocks: jp, jn, jvq, jvqd, transposed
+        tp, tn, tv = self.tol
+        k = 3 if full_normal else 2
+        r = np.empty(6 + k)
         J = np.zeros((6 + k, 16))
-        J[0:3, :8] = jp / self.tol[0]
-        J[3:3 + k, :8] = jnn
-        J[3 + k:, :8] = jvq / self.tol[2]
-        J[3 + k:, 8:] = jvqd / self.tol[2]
+        r[0:3] = (o[0:3] - tg.position) / tp
+        J[0:3, :8] = jac[0].T / tp
+        if full_normal:
+            r[3:6] = (o[3:6] - tg.normal) / tn
+            J[3:6, :8] = jac[1].T / tn
+        else:
+            r[3:5] = self.tangent @ o[3:6] / tn
+            J[3:5, :8] = (self.tangent / tn) @ jac[1].T
+        r[3 + k:] = (o[6:9] - tg.velocity) / tv
+        J[3 + k:, :8] = jac[2].T / tv
+        J[3 + k:, 8:] = jac[3].T / tv
         return r, J
 
     def residual_hessian(self, s: FloatArray, lam: FloatArray) -> FloatArray:
@@ -1098,9 +1105,12 @@ class _Context:
             step = float(np.max(np.abs(y)))
             w, s, r, J = w_new, s_new, r_new, J_new
             key = (float(np.max(np.abs(r))), cost(w, s))
+            # reduced problem: the iterates are feasible and the cost only decreases; a step
+            # that gained less than 1e-5 of the cost leaves a Newton polish of no value
+            stalled = nw == 0 and best is not None and key[0] < 1e-2 and best[1] - key[1] <= 1e-5 * abs(best[1])
             if best is None or (max(key[0], 0.05) , key[1]) < (max(best[0], 0.05), best[1]):
                 best = (key[0], key[1], w.copy(), s.copy())
-            if step < 1e-7 or (step < 1e-3 and key[0] < 1e-2):
+            if step < 1e-7 or (step < 1e-3 and key[0] < 1e-2) or stalled:
                 break
         if best is None:
             return w, s, qps, "no QP solved"
