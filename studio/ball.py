@@ -815,6 +815,23 @@ def _rodrigues(rv: FloatArray) -> FloatArray:
     return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * (K @ K)
 
 
+def _relative_rotvecs(R: FloatArray) -> FloatArray:
+    """Rotation vectors (N-1, 3) of R_i^T R_{i+1} for rotations R (N, 3, 3): the log map
+    from the skew part (atan2 of its norm and the trace), scipy's for angles near pi
+    where the skew part loses the axis."""
+    M = np.einsum("nji,njk->nik", R[:-1], R[1:])
+    w = 0.5 * np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], axis=1)
+    sn = np.linalg.norm(w, axis=1)
+    cs = 0.5 * (M[:, 0, 0] + M[:, 1, 1] + M[:, 2, 2] - 1.0)
+    ang = np.arctan2(sn, cs)
+    scale = np.where(sn > 1e-12, ang / np.maximum(sn, 1e-300), 1.0)
+    out = w * scale[:, None]
+    near_pi = cs < -0.9
+    if np.any(near_pi):
+        out[near_pi] = Rotation.from_matrix(M[near_pi]).as_rotvec()
+    return out
+
+
 class SampledRacketMotion:
     """Racket motion interpolated from samples (e.g. the planner's predicted flange path).
 
@@ -870,9 +887,8 @@ class SampledRacketMotion:
         else:
             spline = CubicSpline(t, p, axis=0)
         self._c = np.ascontiguousarray(np.moveaxis(spline.c, 1, 0))  # (N-1, 4, 3)
-        rot = Rotation.from_matrix(R)
-        self._R = rot.as_matrix()
-        rel = (rot[:-1].inv() * rot[1:]).as_rotvec()  # body-frame increments (N-1, 3)
+        self._R = R
+        rel = _relative_rotvecs(R)  # body-frame increments (N-1, 3)
         self._rv = rel
         self._omega_slerp = np.einsum("nij,nj->ni", self._R[:-1], rel) / np.diff(t)[:, None]
         if omega is not None:

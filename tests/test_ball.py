@@ -350,3 +350,19 @@ def test_bad_inputs_rejected(tmp_path: Path) -> None:
     nan.write_text(f"{header}\n{good.replace('0.5', 'nan', 1)}\n")
     with pytest.raises(DataFileError, match="line 2, column 'v_in_x': not finite"):
         BC.load_bounce_csv(nan)
+
+
+def test_relative_rotation_vectors_match_scipy_including_half_turns() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from studio.ball import _relative_rotvecs
+
+    rng = np.random.default_rng(3)
+    big = Rotation.random(300, random_state=1).as_matrix()  # arbitrary increments, some near pi
+    small = Rotation.from_rotvec(np.cumsum(0.02 * rng.normal(size=(300, 3)), axis=0)).as_matrix()  # 1 kHz-like
+    for R in (big, small):
+        rot = Rotation.from_matrix(R)
+        expected = (rot[:-1].inv() * rot[1:]).as_rotvec()
+        np.testing.assert_allclose(_relative_rotvecs(R), expected, atol=1e-9)
+    half = np.stack([np.eye(3), Rotation.from_rotvec([0.0, np.pi, 0.0]).as_matrix()])
+    assert np.isclose(np.linalg.norm(_relative_rotvecs(half)[0]), np.pi)
