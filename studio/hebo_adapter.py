@@ -88,6 +88,11 @@ class HeboConfig:
     fit and random draws in plain torch, exact posterior variance) instead of gpytorch:
     on 256 points a 60-epoch fit takes ~0.28 s instead of ~0.50 s and an acquisition call
     on 48 points ~0.4 ms instead of ~2 ms."""
+    fantasize: bool = True
+    """With suggestions made while a batch is still being evaluated (``pending`` points of
+    :meth:`HeboAdapter.suggest`), enter the pending points into the GP at their posterior
+    mean (kriging believer, hyper-parameters unchanged) so the acquisition steers away from
+    them; needs :attr:`fast_gp`. ``False``: pending points are only kept out of the result."""
     vector_nsga: bool = True
     """Run NSGA-II on plain float vectors (pymoo's SBX/PM operators, numpy duplicate
     elimination) instead of HEBO's mixed-variable setup (the same real-valued operators
@@ -108,7 +113,7 @@ class HeboConfig:
     @classmethod
     def hebo_defaults(cls) -> HeboConfig:
         """HEBO 0.3.6's own settings (no cap, NSGA-II 100 x 100 on mixed variables, 100 GP epochs, one torch thread)."""
-        return cls(max_train=None, es_pop=100, es_iters=100, gp_epochs=100, vector_nsga=False, fast_gp=False, torch_threads=1)
+        return cls(max_train=None, es_pop=100, es_iters=100, gp_epochs=100, vector_nsga=False, fast_gp=False, fantasize=False, torch_threads=1)
 
     def to_json(self) -> dict[str, Any]:
         return {name: getattr(self, name) for name in self.__slots__}  # type: ignore[attr-defined]
@@ -283,14 +288,20 @@ class HeboAdapter:
         idx = np.array(sorted(keep))
         return X.iloc[idx].reset_index(drop=True), y[idx]
 
-    def suggest(self, n: int, *, upto: int | None = None, skip: int | None = None) -> npt.NDArray[np.float64]:
+    def suggest(
+        self, n: int, *, upto: int | None = None, skip: int | None = None, pending: npt.ArrayLike | None = None
+    ) -> npt.NDArray[np.float64]:
         """``n`` new points (n, dim) in [0, 1] from the first ``upto`` observations (default:
         all), deterministic given the seed and those observations.
 
         ``upto`` lets a caller suggest the next batch while the current one is still being
         evaluated, from the observations it had before (and reproduce that on resume);
         ``skip`` (default ``upto``) is how many points were suggested before this call, so
-        that the initial Sobol points of overlapping calls do not repeat.
+        that the initial Sobol points of overlapping calls do not repeat. ``pending`` (p, dim):
+        points suggested earlier whose targets are not among those observations yet (a batch
+        in flight): never suggested again and, with :attr:`HeboConfig.fantasize`, entered
+        into the GP at its posterior mean. They are used in a canonical (sorted) order, so
+        the result does not depend on the order they are given in.
         """
         if n < 1:
             raise InvalidInputError(f"suggest: n must be >= 1, got {n}")
@@ -298,12 +309,17 @@ class HeboAdapter:
         if not 0 <= m <= self.n_observed:
             raise InvalidInputError(f"suggest: upto must be in [0, {self.n_observed}], got {upto}")
         k = m if skip is None else int(skip)
+        P = np.zeros((0, self.dim)) if pending is None else np.asarray(pending, dtype=float).reshape(-1, self.dim)
+        if not np.all(np.isfinite(P)):
+            raise InvalidInputError("suggest: pending points must be finite")
+        if len(P):
+            P = np.unique(P, axis=0)  # canonical order (lexicographic rows), duplicates dropped
         with self._seeded(n, m, k) as key, self._quiet():
             if m < self.hebo.rand_sample:
                 return self._sobol(n, k)
-            return self._suggest_model(n, key, m)
+            return self._suggest_model(n, key, m, P)
 
-    def _suggest_model(self, n: int, key: int, m: int) -> npt.NDArray[np.float64]:
+    def _suggest_model(self, n: int, key: int, m: int, pending: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         import pandas as pd
         import torch
         from sklearn.preprocessing import power_transform
@@ -337,6 +353,11 @@ class HeboAdapter:
             y_t = torch.FloatTensor(yy).clone()
             model = fit(y_t)
 
+        if len(pending) and cfg.fantasize:
+            if not cfg.fast_gp:
+                raise InvalidInputError("HeboConfig.fantasize needs fast_gp (HEBO's gpytorch GP cannot add pending points)")
+            Pdf = pd.DataFrame(pending, columns=self.names)
+            model.condition_on(space.transform(Pdf)[0])
         best_id = int(np.argmin(yy.reshape(-1)))
         best_x = Xdf.iloc[[best_id]]
         py_best, _ = model.predict(*space.transform(best_x))
@@ -369,12 +390,14 @@ class HeboAdapter:
             x = [x] if isinstance(x, dict) else list(x)
             rec = pd.DataFrame(x)[self.names].to_numpy(dtype=float)
         rec = np.unique(np.clip(rec, 0.0, 1.0), axis=0)
-        seen = {tuple(r) for r in self.X[:m]}
+        seen = {tuple(r) for r in self.X[:m]} | {tuple(r) for r in pending}
         rec = np.array([r for r in rec if tuple(r) not in seen]).reshape(-1, self.dim)
         if len(rec) < n:  # too few Pareto points: fill with Sobol points (as HEBO does), from a
             # sequence scrambled with this call's key, so that a resumed batch does not redraw
             # the fill points of the interrupted one
-            rec = np.vstack([rec, self._sobol(n - len(rec), 0, seed=int(key % (2**31)))])
+            fill = self._sobol(n - len(rec) + len(pending), 0, seed=int(key % (2**31)))
+            fill = np.array([r for r in fill if tuple(r) not in seen]).reshape(-1, self.dim)  # pending ones stay out
+            rec = np.vstack([rec, fill[: n - len(rec)]])
         rng = np.random.default_rng(key)
         select = rng.choice(len(rec), n, replace=False).tolist()
         with torch.no_grad():

@@ -185,6 +185,20 @@ class FastGP:
             var = var * self.yscaler.std**2
             return mu, var.clamp(min=torch.finfo(var.dtype).eps)
 
+    def condition_on(self, Xc: Tensor) -> None:
+        """Add pending points Xc (m, d) as observations at the posterior mean (the "kriging
+        believer" for a batch still being evaluated), hyper-parameters unchanged: the
+        posterior mean stays the same everywhere and the variance shrinks around them."""
+        if len(Xc) == 0:
+            return
+        with torch.no_grad():
+            Xs = self.xscaler.transform(Xc.float())
+            Ks = self._os * _matern32(Xs / self._ls, self._Z)
+            mu = self._c + (Ks @ self._alpha).reshape(-1)
+            self.Xc = torch.cat([self.Xc, Xs])
+            self.y = torch.cat([self.y, mu])
+        self._cache()
+
     @property
     def noise(self) -> Tensor:
         """Noise variance in the caller's target units, shape (1,)."""

@@ -596,6 +596,10 @@ def optimize_serve(
             old = json.loads((run_dir / "run.json").read_text())
             old.setdefault("ipopt_fallback", False)  # runs logged before these options existed
             old.setdefault("overlap", False)
+            cfg_old = old.setdefault("config", {})
+            cfg_old.setdefault("fast_gp", False)  # runs logged before the option: HEBO's gpytorch GP
+            # pending points exist only with overlap; earlier overlapped runs did not fantasize
+            cfg_old.setdefault("fantasize", False if old["overlap"] else config.fantasize)
             for key in ("side", "task", "seed", "population", "tosses", "bounds", "config", "min_legal_fraction", "ipopt_fallback", "overlap"):
                 if old.get(key) != json.loads(json.dumps(run_json[key])):
                     raise InvalidInputError(f"resume: {run_dir / 'run.json'} has {key}={old.get(key)!r}, this call has {run_json[key]!r}")
@@ -656,6 +660,16 @@ def optimize_serve(
                 return len(records)
             return sum(1 for r in records if r.batch <= max(it - 2, -1))
 
+        def pending(it: int, in_flight: npt.NDArray[np.float64] | None = None) -> npt.NDArray[np.float64] | None:
+            """With ``overlap``: the genomes of batch it - 1, whose results batch ``it``'s
+            suggestion does not see (logged ones plus ``in_flight``, the part being evaluated)."""
+            if not overlap or it < 1:
+                return None
+            rows = [r.genome for r in records if r.batch == it - 1]
+            if in_flight is not None:
+                rows += [list(z) for z in in_flight]
+            return np.array(rows, dtype=float).reshape(-1, len(GENE_NAMES)) if rows else None
+
         def report() -> None:
             if progress is not None:
                 b, p = best()
@@ -679,13 +693,13 @@ def optimize_serve(
                 t0 = time.perf_counter()
                 Z = ahead.pop(it, None)
                 if Z is None or len(Z) != missing:
-                    Z = opt.suggest(missing, upto=usable(it), skip=len(records))
+                    Z = opt.suggest(missing, upto=usable(it), skip=len(records), pending=pending(it))
                 timings["suggest"] += time.perf_counter() - t0
 
                 def suggest_next(nxt: int = it + 1) -> None:
                     if nxt < iterations and not (stop is not None and stop.is_set()):
                         t1 = time.perf_counter()
-                        ahead[nxt] = opt.suggest(population, upto=usable(nxt), skip=len(records) + len(Z))
+                        ahead[nxt] = opt.suggest(population, upto=usable(nxt), skip=len(records) + len(Z), pending=pending(nxt, Z))
                         timings["suggest"] += time.perf_counter() - t1
                         timings["suggest_overlapped"] += time.perf_counter() - t1
 

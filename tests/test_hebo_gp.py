@@ -104,3 +104,36 @@ def test_bad_input_rejected() -> None:
     y[3] = float("nan")
     with pytest.raises(ValueError, match="finite"):
         FastGP(3, 0, 1).fit(X, torch.zeros(20, 0, dtype=torch.long), y)
+
+
+def test_pending_points_keep_the_mean_and_shrink_the_variance() -> None:
+    X, y = _data(n=80, d=4, seed=5)
+    f = _fast_gp(X, y, 20, 1)
+    P = torch.rand(5, 4, generator=torch.Generator().manual_seed(9))
+    Xs = torch.rand(30, 4, generator=torch.Generator().manual_seed(10))
+    m0, v0 = f.predict(Xs, None)
+    _, vp0 = f.predict(P, None)
+    f.condition_on(P)
+    m1, v1 = f.predict(Xs, None)
+    _, vp1 = f.predict(P, None)
+    np.testing.assert_allclose(m1.numpy(), m0.numpy(), atol=1e-4)  # kriging believer: same mean
+    assert torch.all(v1 <= v0 + 1e-6)
+    assert torch.all(vp1 < 0.2 * vp0)  # the pending points are now (almost) known
+
+
+def test_adapter_never_suggests_pending_points_and_needs_fast_gp_to_fantasize() -> None:
+    from studio.errors import InvalidInputError
+
+    rng = np.random.default_rng(6)
+    X = rng.random((40, 3))
+    cfg = HeboConfig(gp_epochs=10, es_pop=16, es_iters=4)
+    a = HeboAdapter(3, seed=2, config=cfg)
+    a.observe(X, ((X - 0.5) ** 2).sum(1))
+    first = a.suggest(5)
+    again = a.suggest(5, pending=first)
+    assert not {tuple(r) for r in first} & {tuple(r) for r in again}
+    np.testing.assert_array_equal(a.suggest(5, pending=first[::-1]), again)  # order-free
+    slow = HeboAdapter(3, seed=2, config=HeboConfig(gp_epochs=10, es_pop=16, es_iters=4, fast_gp=False))
+    slow.observe(X, ((X - 0.5) ** 2).sum(1))
+    with pytest.raises(InvalidInputError, match="fantasize needs fast_gp"):
+        slow.suggest(5, pending=first)

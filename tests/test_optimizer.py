@@ -282,19 +282,27 @@ def test_run_history_reads_the_log_and_flags_corrupt_lines(tmp_path: Path) -> No
 
 def test_overlap_suggests_from_the_batches_before_the_previous_one(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     calls: list[tuple[int, int, int]] = []
+    pendings: list[set[tuple[float, ...]]] = []
     real = HeboAdapter.suggest
 
-    def spy(self, n, *, upto=None, skip=None):  # type: ignore[no-untyped-def]
+    def spy(self, n, *, upto=None, skip=None, pending=None):  # type: ignore[no-untyped-def]
         calls.append((n, upto, self.n_observed))
-        return real(self, n, upto=upto, skip=skip)
+        pendings.append(set() if pending is None else {tuple(p) for p in np.asarray(pending)})
+        return real(self, n, upto=upto, skip=skip, pending=pending)
 
     monkeypatch.setattr(HeboAdapter, "suggest", spy)
     res = run(tmp_path / "lag", iterations=4, overlap=True)
     # 2 seeds, batches of 4: batch i >= 1 is suggested from seeds + batches <= i - 2
     assert [upto for _, upto, _ in calls] == [2, 2, 6, 10]
     assert [seen for _, _, seen in calls] == [2, 2, 6, 10]  # batch i+1 is asked for before batch i is observed
-    genomes = [tuple(r["genome"]) for r in read_log(tmp_path / "lag")]
+    log = read_log(tmp_path / "lag")
+    genomes = [tuple(r["genome"]) for r in log]
     assert len(set(genomes)) == len(genomes) == res.evaluations  # the Sobol start does not repeat points
+    # ... with batch i (in flight) as its pending points, which it does not suggest again
+    assert pendings[0] == set()
+    for i in range(1, 4):
+        assert pendings[i] == {tuple(r["genome"]) for r in log if r["batch"] == i - 1}
+        assert not pendings[i] & {tuple(r["genome"]) for r in log if r["batch"] == i}
     calls.clear()
     run(tmp_path / "sync", iterations=4)  # the default: sequential
     assert [upto for _, upto, _ in calls] == [2, 6, 10, 14]
