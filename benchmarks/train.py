@@ -1,6 +1,7 @@
 """Time to train one serve with HEBO (paper budget: 100 iterations x 20 = 2000 evaluations).
 
-    .venv/bin/python benchmarks/train.py                       # chosen HeboConfig, 2 workers
+    .venv/bin/python benchmarks/train.py                       # chosen HeboConfig, 2 workers, overlapped (default)
+    .venv/bin/python benchmarks/train.py --sequential          # suggest after each batch
     .venv/bin/python benchmarks/train.py --compare             # + HEBO defaults and CMA-ES
     .venv/bin/python benchmarks/train.py --compare --compare-evaluations 400
     .venv/bin/python benchmarks/train.py --compare --skip-main --compare-evaluations 800 --compare-seeds 0 1 2
@@ -35,7 +36,7 @@ Trace = list[tuple[int, float, float]]
 """(evaluations done, seconds since start, best reward so far)."""
 
 
-def run_hebo(args: argparse.Namespace, config: HeboConfig, iterations: int, run_dir: Path, *, overlap: bool = False) -> tuple[Trace, object]:
+def run_hebo(args: argparse.Namespace, config: HeboConfig, iterations: int, run_dir: Path, *, overlap: bool) -> tuple[Trace, object]:
     trace: Trace = []
     t0 = time.perf_counter()
 
@@ -96,7 +97,8 @@ def main() -> None:
     ap.add_argument("--compare-evaluations", type=int, default=400)
     ap.add_argument("--compare-seeds", type=int, nargs="+", default=[0], help="seeds of the comparison runs (README: 0 1 2 at 800 evaluations)")
     ap.add_argument("--skip-main", action="store_true", help="with --compare: skip the full-budget run")
-    ap.add_argument("--overlap", action="store_true", help="main run: suggest the next batch while the workers evaluate (faster, less reward)")
+    ap.add_argument("--optimizers", nargs="+", choices=("chosen", "overlap", "defaults", "cma"), default=["chosen", "overlap", "defaults", "cma"], help="with --compare: which optimizers to run")
+    ap.add_argument("--sequential", action="store_true", help="main run: suggest each batch after the previous one is evaluated (default: overlapped)")
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args()
 
@@ -104,7 +106,7 @@ def main() -> None:
     out: dict[str, object] = {"task": args.task, "side": args.side, "workers": args.workers, "tosses": args.tosses, "config": cfg.to_json()}
     with tempfile.TemporaryDirectory() as tmp:
         if not args.skip_main:
-            trace, res = run_hebo(args, cfg, args.iterations, Path(tmp) / "main", overlap=args.overlap)
+            trace, res = run_hebo(args, cfg, args.iterations, Path(tmp) / "main", overlap=not args.sequential)
             t = res.timings
             s = res.summary
             log = [json.loads(line) for line in (Path(tmp) / "main" / "evaluations.jsonl").read_text().splitlines()]
@@ -140,15 +142,19 @@ def main() -> None:
             n = args.compare_evaluations
             iters = max(1, n // args.population)
             marks = [n // 4, n // 2, 3 * n // 4, n]
-            names = ("HEBO chosen config", "HEBO chosen config, overlapped suggestions", "HEBO defaults", "CMA-ES (pop 20)")
-            finals: dict[str, list[tuple[float, float]]] = {name: [] for name in names}
+            names = {"chosen": "HEBO chosen config, sequential", "overlap": "HEBO chosen config, overlapped suggestions (default)", "defaults": "HEBO defaults", "cma": "CMA-ES (pop 20)"}
+            finals: dict[str, list[tuple[float, float]]] = {names[k]: [] for k in args.optimizers}
             for seed in args.compare_seeds:
                 a = argparse.Namespace(**{**vars(args), "seed": seed})
                 runs: dict[str, Trace] = {}
-                runs[names[0]], _ = run_hebo(a, cfg, iters, Path(tmp) / f"cmp_chosen_{seed}")
-                runs[names[1]], _ = run_hebo(a, cfg, iters, Path(tmp) / f"cmp_overlap_{seed}", overlap=True)
-                runs[names[2]], _ = run_hebo(a, HeboConfig.hebo_defaults(), iters, Path(tmp) / f"cmp_default_{seed}", overlap=False)
-                runs[names[3]], _ = run_cma(a, iters * args.population)
+                if "chosen" in args.optimizers:
+                    runs[names["chosen"]], _ = run_hebo(a, cfg, iters, Path(tmp) / f"cmp_chosen_{seed}", overlap=False)
+                if "overlap" in args.optimizers:
+                    runs[names["overlap"]], _ = run_hebo(a, cfg, iters, Path(tmp) / f"cmp_overlap_{seed}", overlap=True)
+                if "defaults" in args.optimizers:
+                    runs[names["defaults"]], _ = run_hebo(a, HeboConfig.hebo_defaults(), iters, Path(tmp) / f"cmp_default_{seed}", overlap=False)
+                if "cma" in args.optimizers:
+                    runs[names["cma"]], _ = run_cma(a, iters * args.population)
                 print(f"\nComparison at {iters * args.population} evaluations (task {args.task}, {args.side} toss, seed {seed}): best reward so far / seconds")
                 print("| optimizer | " + " | ".join(f"{m} evals" for m in marks) + " |")
                 print("| --- |" + " --- |" * len(marks))

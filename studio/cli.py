@@ -84,6 +84,7 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
             progress=progress,
             stop=stop,
             resume=args.resume,
+            overlap=False if args.sequential else None,
         )
     except KeyboardInterrupt:
         print(f"\ninterrupted: every evaluation so far is in {run_dir}; continue with --resume --run-dir {run_dir}")
@@ -121,6 +122,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     cfg = TrainConfig(
         task=args.task, count=args.count, side=args.side, iterations=args.iterations, population=args.population, tosses=args.tosses,
         seed=args.seed, workers=args.workers, seeds=tuple(load_serve(p) for p in args.seeds), runs_dir=Path(args.runs or f"runs/train-{args.task}"),
+        overlap=False if args.sequential else None,
     )  # fmt: skip
 
     def progress(r: TrainedServe, total: int) -> None:
@@ -317,6 +319,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--run-dir", default=None, help="run folder (evaluations.jsonl, run.json); default runs/<time>-<side>-<task>")
     p.add_argument("--resume", action="store_true", help="continue the run in --run-dir without repeating evaluations")
     p.add_argument("--export", default=None, metavar="DIR", help="export the chosen serve to this serve library")
+    p.add_argument("--sequential", action="store_true", help="suggest each batch after the previous one is evaluated (default with 2+ workers: the next batch is suggested while the workers evaluate)")
     handlers["optimize"] = _cmd_optimize
 
     p = sub.add_parser("train", help="train COUNT serves for a task (one HEBO run each) into a library, print a Table II-like summary")
@@ -331,6 +334,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--workers", type=int, default=2, help="evaluation processes per run")
     p.add_argument("--seed", type=int, default=0, help="seed of the first run (run i uses seed + i)")
     p.add_argument("--runs", default=None, help="folder of the run folders (default runs/train-<task>); rerun to resume")
+    p.add_argument("--sequential", action="store_true", help="no overlapped suggestions (see optimize --sequential)")
     p.add_argument("--ray", default=None, metavar="ADDRESS", help="run the runs as tasks on a Ray cluster (ray.init address, e.g. auto or ray://host:10001; 'local' starts a local instance)")
     handlers["train"] = _cmd_train
 

@@ -88,6 +88,9 @@ class TrainConfig:
     """Hand-designed seed serves (each run gets those of its side)."""
     runs_dir: Path = field(default_factory=lambda: Path("runs"))
     """Folder of the run folders."""
+    overlap: bool | None = None
+    """Suggest the next batch while the current one is evaluated (``optimize_serve``'s
+    ``overlap``; ``None``: when a run has 2+ evaluation processes)."""
 
     def __post_init__(self) -> None:
         from studio.reward import task_weights
@@ -151,7 +154,7 @@ def _run_job(side: TossSide, seed: int, cfg: TrainConfig, run_dir: Path, *, work
     res = optimize_serve(
         side=side, task=cfg.task, run_dir=run_dir, seeds=[s for s in cfg.seeds if s.side == side], iterations=cfg.iterations,
         population=cfg.population, tosses=cfg.tosses, seed=seed, workers=workers, resume=(run_dir / "evaluations.jsonl").exists(),
-        on_record=on_record,
+        on_record=on_record, overlap=cfg.overlap,
     )  # fmt: skip
     if res.best is None:
         return None

@@ -306,3 +306,15 @@ def test_overlap_suggests_from_the_batches_before_the_previous_one(tmp_path: Pat
     calls.clear()
     run(tmp_path / "sync", iterations=4)  # the default: sequential
     assert [upto for _, upto, _ in calls] == [2, 6, 10, 14]
+
+
+def test_resume_keeps_the_runs_own_loop_unless_one_is_asked_for(tmp_path: Path) -> None:
+    run(tmp_path / "r", iterations=2, overlap=True)
+    assert json.loads((tmp_path / "r" / "run.json").read_text())["overlap"] is True
+    res = run(tmp_path / "r", iterations=3, resume=True)  # overlap not given: the run's own (overlapped)
+    assert json.loads((tmp_path / "r" / "run.json").read_text())["overlap"] is True
+    assert res.evaluations == 2 + 3 * 4
+    with pytest.raises(InvalidInputError, match="overlap"):
+        run(tmp_path / "r", iterations=4, resume=True, overlap=False)  # an explicit different loop is refused
+    run(tmp_path / "d", iterations=1)  # default with in-process evaluation: sequential
+    assert json.loads((tmp_path / "d" / "run.json").read_text())["overlap"] is False
