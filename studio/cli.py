@@ -117,7 +117,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from studio.serve import load_serve
-    from studio.training import TrainConfig, TrainedServe, summary_table, train_serves
+    from studio.training import TrainConfig, TrainedServe, finished_runs, summary_table, train_serves
 
     cfg = TrainConfig(
         task=args.task, count=args.count, side=args.side, iterations=args.iterations, population=args.population, tosses=args.tosses,
@@ -132,6 +132,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
         verdict = f"exported as {r.entry_id}" if r.entry_id else f"not legal ({r.reason}), not exported"
         print(f"[{r.index + 1}/{total}] {r.run_dir.name}: reward {r.reward:+.3f}, {verdict} ({r.seconds:.0f} s)", flush=True)
 
+    if args.report:
+        done = finished_runs(cfg)
+        print(f"{len(done)} of {cfg.count} {cfg.task} runs finished in {cfg.runs_dir}\n")
+        print(summary_table(done, cfg.task))
+        return 0
+    if args.library is None:
+        print("error: --library is required to train (or pass --report)", file=sys.stderr)
+        return 2
     where = f"on the Ray cluster {args.ray}" if args.ray else f"locally, {args.workers} evaluation processes per run"
     print(f"training {cfg.count} {cfg.task} serves {where}; run folders in {cfg.runs_dir}", flush=True)
     try:
@@ -325,7 +333,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p = sub.add_parser("train", help="train COUNT serves for a task (one HEBO run each) into a library, print a Table II-like summary")
     p.add_argument("--task", required=True, help="reward task preset")
     p.add_argument("--count", type=int, default=25)
-    p.add_argument("--library", required=True, help="serve library folder to export to")
+    p.add_argument("--library", default=None, help="serve library folder to export to (required to train)")
+    p.add_argument("--report", action="store_true", help="print the summary of the finished runs in --runs and exit (no training)")
     p.add_argument("--seeds", nargs="*", default=[], help="hand-designed serve JSON files to seed every run")
     p.add_argument("--side", choices=("right", "left", "both"), default="both")
     p.add_argument("--iterations", type=int, default=100)

@@ -205,6 +205,17 @@ def _already(index: int, run_dir: Path) -> TrainedServe | None:
     return TrainedServe(index, run_dir, bool(d.get("legal", d.get("id") is not None)), math.nan if reward is None else float(reward), dict(d.get("row", {})), d.get("id"), 0.0, "already trained")
 
 
+def finished_runs(cfg: TrainConfig) -> list[TrainedServe]:
+    """The runs of ``cfg`` that are finished (their folder holds ``exported.json``), in run
+    order, without training anything (for a report while or after training)."""
+    out = []
+    for i, _side, _seed, run_dir in cfg.jobs():
+        done = _already(i, run_dir)
+        if done is not None:
+            out.append(done)
+    return out
+
+
 def train_serves(
     cfg: TrainConfig,
     library_dir: str | Path,

@@ -62,3 +62,9 @@ def test_train_exports_legal_serves_and_resumes(capsys: pytest.CaptureFixture[st
     assert main(args) == 0  # a second invocation finds the finished run and trains nothing
     assert "already trained" in capsys.readouterr().out
     assert len(ServeLibrary(tmp_path / "lib").entries()) == 1
+    report = ["train", "--task", "topspin_velocity", "--count", "3", "--side", "right", "--runs", str(tmp_path / "runs"), "--report"]
+    assert main(report) == 0  # the summary of what is finished, no library needed, nothing trained
+    out = capsys.readouterr().out
+    assert "1 of 3 topspin_velocity runs finished" in out and "1 legal of 1 trained serves" in out
+    assert not (tmp_path / "runs" / "001-right-seed1").exists()
+    assert main(report[:-1]) == 2  # training needs --library
