@@ -82,7 +82,7 @@ import daqp
 import numpy as np
 import numpy.typing as npt
 
-from studio.errors import InvalidInputError
+from studio.errors import InvalidInputError, checked_array
 from studio.kinematics_casadi import CasadiKinematics, build_kinematics
 from studio.robot import JointDynamics, JointLimits, Robot
 from studio.robot_description import RACKET_FRAME
@@ -200,17 +200,7 @@ class PlannerOptions:
 
 def _vec(x: npt.ArrayLike, shape: tuple[int, ...], name: str) -> FloatArray:
     """Validated read-only float array (shape, finite) or InvalidInputError naming ``name``."""
-    try:
-        arr = np.array(x, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"{name}: not a numeric array ({exc})") from exc
-    if arr.shape != shape:
-        raise InvalidInputError(f"{name}: expected shape {shape}, got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        idx = tuple(int(i) for i in np.argwhere(~np.isfinite(arr))[0])
-        raise InvalidInputError(f"{name}: not finite at index {idx}")
-    arr.setflags(write=False)
-    return arr
+    return checked_array(x, shape, name)  # type: ignore[no-any-return]
 
 
 @dataclass(frozen=True, slots=True)

@@ -72,7 +72,7 @@ from studio.ball import (
     rk4_step,
 )
 from studio.court import DEFAULT_COURT, Box, Court
-from studio.errors import InvalidInputError, RobotModelError
+from studio.errors import InvalidInputError, RobotModelError, checked_array
 from studio.paths import robots_dir
 from studio.robot import JointDynamics
 from studio.robot_description import BALL_CUP_FRAME, MJCF_NAME, RACKET_BLADE_GEOM, RACKET_FRAME
@@ -679,17 +679,8 @@ def _static_boxes(scene: Scene, d: mujoco.MjData) -> tuple[list[int], FloatArray
 
 
 def _as_array(value: npt.ArrayLike, name: str, shape: tuple[int, ...]) -> FloatArray:
-    try:
-        arr = np.array(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"rollout: {name} must be an array of numbers, got {type(value).__name__}") from exc
-    if arr.shape != shape:
-        raise InvalidInputError(f"rollout: {name} must have shape {shape}, got {arr.shape}")
-    bad = ~np.isfinite(arr)
-    if np.any(bad):
-        idx = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise InvalidInputError(f"rollout: {name} is not finite at index {idx}")
-    return arr
+    """Validated float array (shape, finite) or InvalidInputError naming ``rollout: name``."""
+    return checked_array(value, shape, f"rollout: {name}", read_only=False)  # type: ignore[no-any-return]
 
 
 def _restitution(v: FloatArray, v_surface: FloatArray, n: FloatArray, e: float) -> FloatArray:
