@@ -887,7 +887,8 @@ class SampledRacketMotion:
         else:
             spline = CubicSpline(t, p, axis=0)
         self._c = np.ascontiguousarray(np.moveaxis(spline.c, 1, 0))  # (N-1, 4, 3)
-        self._R = R
+        self._R = R.copy()  # not the caller's array: rows are converted lazily
+        self._R.setflags(write=False)
         rel = _relative_rotvecs(R)  # body-frame increments (N-1, 3)
         self._rv = rel
         self._omega_slerp = np.einsum("nij,nj->ni", self._R[:-1], rel) / np.diff(t)[:, None]

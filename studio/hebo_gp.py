@@ -146,9 +146,12 @@ class FastGP:
         ls0 = torch.stack([torch.pdist(self.Xc[:, i : i + 1]).median().clamp(min=0.02) for i in range(d)])
         self.raw_noise = _softplus_inv(torch.tensor([max(1e-2, self.noise_lb) - self.noise_lb])).requires_grad_(True)
         self.raw_constant = torch.zeros(()).requires_grad_(True)
-        self.raw_outputscale = _softplus_inv(self.y.var()).requires_grad_(True)
+        # HEBO starts the output scale at the targets' variance; floored so that identical
+        # targets (e.g. only failed plans so far) do not start it at 0 (softplus^-1(0) = -inf)
+        self.raw_outputscale = _softplus_inv(self.y.var().clamp_min(1e-4)).requires_grad_(True)
         self.raw_lengthscale = _softplus_inv(ls0).reshape(1, d).requires_grad_(True)
         params = [self.raw_noise, self.raw_constant, self.raw_outputscale, self.raw_lengthscale]
+        start = [p.detach().clone() for p in params]
         opt = pSGLD(params, lr=self.lr, factor=1.0 / len(self.y), pretrain_step=self.num_epochs // 10)
         for _ in range(self.num_epochs):
             opt.zero_grad()
@@ -158,6 +161,11 @@ class FastGP:
                 self.failed_steps += 1  # HEBO: "jitter is too large, give up fitting GP" (for this epoch)
                 continue
             opt.step()
+        if not all(bool(torch.isfinite(p).all()) for p in params):  # a diverged fit: keep the start
+            self.failed_steps += 1
+            with torch.no_grad():
+                for p, p0 in zip(params, start, strict=True):
+                    p.copy_(p0)
         self._cache()
 
     def _cache(self) -> None:

@@ -502,7 +502,7 @@ def optimize_serve(
     progress: ProgressFn | None = None,
     stop: threading.Event | None = None,
     bounds: GenomeBounds | None = None,
-    config: HeboConfig = HeboConfig(),
+    config: HeboConfig | None = None,
     resume: bool = False,
     top_k: int = 5,
     final_tosses: int = 10,
@@ -531,7 +531,8 @@ def optimize_serve(
             the run (the log keeps everything evaluated so far).
         stop: when set, the run ends cleanly before the next batch (final pick still done).
         bounds: genome bounds; default :func:`bounds_for_toss` of the side's toss model.
-        config: HEBO cost knobs (:class:`HeboConfig`).
+        config: HEBO cost knobs (:class:`HeboConfig`); ``None``: the defaults, or on resume
+            the run's own configuration.
         resume: continue the run in ``run_dir`` (its ``run.json`` must match).
         top_k, final_tosses: the final pick re-evaluates the ``top_k`` best distinct
             candidates on ``final_tosses`` fresh recorded tosses; best mean wins.
@@ -548,11 +549,14 @@ def optimize_serve(
             over 5 seeds it reached +0.90 on average (+0.70 to +1.46, legal serves on all
             seeds) against +0.25 sequential (-3.0 to +1.29, one seed without a legal
             serve): within the seed-to-seed spread. ``None`` (default): on when
-            ``workers > 1`` (with one process the evaluation cannot run beside it).
+            ``workers > 1`` and the evaluation is the real one (with one process the
+            evaluation cannot run beside the suggestion); on resume the run's own loop.
     """
-    overlap_given = overlap is not None
+    overlap_given, config_given = overlap is not None, config is not None
     if overlap is None:
         overlap = workers > 1 and evaluate is None
+    if config is None:
+        config = HeboConfig()
     t_start = time.perf_counter()
     if iterations < 0 or population < 1:
         raise InvalidInputError(f"iterations must be >= 0 and population >= 1, got {iterations}, {population}")
@@ -609,6 +613,12 @@ def optimize_serve(
             cfg_old.setdefault("fast_gp", False)  # runs logged before the option: HEBO's gpytorch GP
             # pending points exist only with overlap; earlier overlapped runs did not fantasize
             cfg_old.setdefault("fantasize", False if old["overlap"] else config.fantasize)
+            if not config_given:  # likewise its HEBO configuration
+                try:
+                    config = HeboConfig(**cfg_old)
+                except (TypeError, InvalidInputError) as exc:
+                    raise InvalidInputError(f"resume: {run_dir / 'run.json'}: unusable HEBO configuration {cfg_old!r} ({exc})") from exc
+                run_json["config"] = config.to_json()
             for key in ("side", "task", "seed", "population", "tosses", "bounds", "config", "min_legal_fraction", "ipopt_fallback", "overlap"):
                 if old.get(key) != json.loads(json.dumps(run_json[key])):
                     raise InvalidInputError(f"resume: {run_dir / 'run.json'} has {key}={old.get(key)!r}, this call has {run_json[key]!r}")
@@ -617,6 +627,8 @@ def optimize_serve(
             if resume:
                 raise InvalidInputError(f"cannot resume {log_path}: {run_dir / 'run.json'} is missing")
             raise InvalidInputError(f"{log_path} already holds a run: pass resume=True or use another run_dir")
+        if overlap and config.fantasize and not config.fast_gp:
+            raise InvalidInputError("overlapped suggestions with HeboConfig.fantasize need HeboConfig.fast_gp (HEBO's gpytorch GP cannot take pending points): set fantasize=False or overlap=False")
         (run_dir / "run.json").write_text(json.dumps(run_json, indent=2))
 
         opt = HeboAdapter(len(GENE_NAMES), seed=seed, config=config, penalty=penalty)
@@ -670,11 +682,12 @@ def optimize_serve(
             return sum(1 for r in records if r.batch <= max(it - 2, -1))
 
         def pending(it: int, in_flight: npt.NDArray[np.float64] | None = None) -> npt.NDArray[np.float64] | None:
-            """With ``overlap``: the genomes of batch it - 1, whose results batch ``it``'s
-            suggestion does not see (logged ones plus ``in_flight``, the part being evaluated)."""
+            """With ``overlap``: the genomes batch ``it``'s suggestion must know of but does not
+            observe: batch it - 1 (logged ones plus ``in_flight``, the part being evaluated)
+            and, after a resume, the part of batch ``it`` itself that was logged already."""
             if not overlap or it < 1:
                 return None
-            rows = [r.genome for r in records if r.batch == it - 1]
+            rows = [r.genome for r in records if r.batch in (it - 1, it)]
             if in_flight is not None:
                 rows += [list(z) for z in in_flight]
             return np.array(rows, dtype=float).reshape(-1, len(GENE_NAMES)) if rows else None

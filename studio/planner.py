@@ -1085,21 +1085,21 @@ class _Context:
                 if not accepted:
                     break
             else:
-                for _ in range(6):
+                for trial in range(6):
                     s_new = s + alpha * sig * y_full
                     r_new, J_new = self.residuals(s_new)
-                    if float(np.max(np.abs(r_new))) <= max(_FUNNEL, 2.0 * r_max):
-                        break
+                    if float(np.max(np.abs(r_new))) <= max(_FUNNEL, 2.0 * r_max) or trial == 5:
+                        break  # (the last trial is taken as is: w and s move by the same alpha)
                     alpha *= 0.5
             y = alpha * y_full
             w_new = w + alpha * dw
             step = float(np.max(np.abs(y)))
             w, s, r, J = w_new, s_new, r_new, J_new
             key = (float(np.max(np.abs(r))), cost(w, s))
-            # errors within 1 % of their tolerances and a step that changed the cost by less
-            # than 1e-5 of it: what is left is a Newton polish of no value (the linear rows
-            # hold at every iterate; the a-posteriori check verifies the result anyway)
-            stalled = prev_cost is not None and key[0] < 1e-2 and abs(prev_cost - key[1]) <= 1e-5 * abs(prev_cost)
+            # a full step, errors within 1 % of their tolerances and a cost change below 1e-5
+            # of it: what is left is a Newton polish of no value (the linear rows hold at
+            # every iterate; the a-posteriori check verifies the result anyway)
+            stalled = alpha == 1.0 and prev_cost is not None and key[0] < 1e-2 and abs(prev_cost - key[1]) <= 1e-5 * abs(prev_cost)
             prev_cost = key[1]
             if best is None or (max(key[0], 0.05) , key[1]) < (max(best[0], 0.05), best[1]):
                 best = (key[0], key[1], w.copy(), s.copy())
@@ -1323,9 +1323,11 @@ class _Context:
         score = float(np.sum(np.maximum(excess - 1.0, 0.0)))
         lo, hi = self.pl._check_lo, self.pl._check_hi  # fast path: most plans have nothing beyond
         N = len(t)  # per-(joint, component) extremes over time: column reductions of contiguous arrays
-        cmax, cmin = C.reshape(N, 24).max(axis=0).reshape(8, 3), C.reshape(N, 24).min(axis=0).reshape(8, 3)
-        zmax, zmin = Z.reshape(N, 40).max(axis=0).reshape(8, 5)[:, 3:], Z.reshape(N, 40).min(axis=0).reshape(8, 5)[:, 3:]
-        beyond = N > 0 and bool(np.any(cmax > hi[:, :3]) or np.any(cmin < lo[:, :3]) or np.any(zmax > hi[:, 3:]) or np.any(zmin < lo[:, 3:]))
+        beyond = False
+        if N > 0:
+            cmax, cmin = C.reshape(N, 24).max(axis=0).reshape(8, 3), C.reshape(N, 24).min(axis=0).reshape(8, 3)
+            zmax, zmin = Z.reshape(N, 40).max(axis=0).reshape(8, 5)[:, 3:], Z.reshape(N, 40).min(axis=0).reshape(8, 5)[:, 3:]
+            beyond = bool(np.any(cmax > hi[:, :3]) or np.any(cmin < lo[:, :3]) or np.any(zmax > hi[:, 3:]) or np.any(zmin < lo[:, 3:]))
         viol = self.limit_violations(self.check_values(C, Z), t) if beyond else []
         info["violations"] = viol
         if np.any(excess > 1.0):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -68,3 +69,20 @@ def test_train_exports_legal_serves_and_resumes(capsys: pytest.CaptureFixture[st
     assert "1 of 3 topspin_velocity runs finished" in out and "1 legal of 1 trained serves" in out
     assert not (tmp_path / "runs" / "001-right-seed1").exists()
     assert main(report[:-1]) == 2  # training needs --library
+
+
+def test_in_process_training_gets_single_thread_pools(monkeypatch: pytest.MonkeyPatch) -> None:
+    import argparse
+
+    from studio.cli import THREAD_VARS, single_thread_pools
+    from studio.optimizer import WORKER_THREAD_VARS
+
+    assert set(THREAD_VARS) == set(WORKER_THREAD_VARS)
+    for var in THREAD_VARS:
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setenv("MKL_NUM_THREADS", "4")  # a user's own setting is kept
+    assert not single_thread_pools(argparse.Namespace(command="train", workers=2, ray=None))
+    assert not single_thread_pools(argparse.Namespace(command="evaluate"))
+    assert "OMP_NUM_THREADS" not in os.environ
+    assert single_thread_pools(argparse.Namespace(command="train", workers=1, ray=None))
+    assert os.environ["OMP_NUM_THREADS"] == os.environ["OPENBLAS_NUM_THREADS"] == "1" and os.environ["MKL_NUM_THREADS"] == "4"

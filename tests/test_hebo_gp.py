@@ -137,3 +137,15 @@ def test_adapter_never_suggests_pending_points_and_needs_fast_gp_to_fantasize() 
     slow.observe(X, ((X - 0.5) ** 2).sum(1))
     with pytest.raises(InvalidInputError, match="fantasize needs fast_gp"):
         slow.suggest(5, pending=first)
+
+
+def test_identical_targets_still_give_suggestions() -> None:
+    """Only failed plans so far: every target equals the penalty (HEBO's GP survives this too)."""
+    X, y = _data(n=30, d=3, seed=7)
+    f = _fast_gp(X, torch.full_like(y, 10.0), 20, 0)
+    mu, var = f.predict(X[:4], None)
+    assert torch.all(torch.isfinite(mu)) and torch.all(torch.isfinite(var))
+    a = HeboAdapter(3, seed=1, config=HeboConfig(gp_epochs=10, es_pop=16, es_iters=4))
+    a.observe(np.random.default_rng(0).random((30, 3)), np.full(30, 10.0))
+    Z = a.suggest(6)
+    assert Z.shape == (6, 3) and np.all(np.isfinite(Z))

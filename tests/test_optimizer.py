@@ -318,3 +318,47 @@ def test_resume_keeps_the_runs_own_loop_unless_one_is_asked_for(tmp_path: Path) 
         run(tmp_path / "r", iterations=4, resume=True, overlap=False)  # an explicit different loop is refused
     run(tmp_path / "d", iterations=1)  # default with in-process evaluation: sequential
     assert json.loads((tmp_path / "d" / "run.json").read_text())["overlap"] is False
+
+
+def test_resume_takes_the_runs_own_hebo_configuration(tmp_path: Path) -> None:
+    import dataclasses
+
+    other = dataclasses.replace(FAST, es_iters=FAST.es_iters + 1)
+    run(tmp_path / "r", iterations=1, config=other)
+    res = run(tmp_path / "r", iterations=2, resume=True, config=None)  # not given: the run's own
+    assert json.loads((tmp_path / "r" / "run.json").read_text())["config"]["es_iters"] == other.es_iters
+    assert res.evaluations == 2 + 2 * 4
+    old = json.loads((tmp_path / "r" / "run.json").read_text())
+    del old["config"]["fast_gp"], old["config"]["fantasize"]  # a run logged before those options
+    (tmp_path / "r" / "run.json").write_text(json.dumps(old))
+    run(tmp_path / "r", iterations=3, resume=True, config=None)
+    assert json.loads((tmp_path / "r" / "run.json").read_text())["config"]["fast_gp"] is False  # kept gpytorch
+
+
+def test_overlap_with_fantasies_needs_the_fast_gp_before_anything_runs(tmp_path: Path) -> None:
+    import dataclasses
+
+    with pytest.raises(InvalidInputError, match="fast_gp"):
+        run(tmp_path / "x", overlap=True, config=dataclasses.replace(FAST, fast_gp=False))
+    assert not (tmp_path / "x" / "evaluations.jsonl").exists()
+
+
+def test_resumed_torn_overlapped_batch_knows_its_logged_part(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    run(tmp_path / "t", iterations=3, overlap=True)
+    lines = (tmp_path / "t" / "evaluations.jsonl").read_text().splitlines()
+    recs = [json.loads(x) for x in lines]
+    keep = [x for x, r in zip(lines, recs) if r["batch"] < 2] + [x for x, r in zip(lines, recs) if r["batch"] == 2][:2]
+    (tmp_path / "t" / "evaluations.jsonl").write_text("\n".join(keep) + "\n")  # killed in the middle of batch 2
+    seen: list[set] = []
+    real = HeboAdapter.suggest
+
+    def spy(self, n, *, upto=None, skip=None, pending=None):  # type: ignore[no-untyped-def]
+        seen.append(set() if pending is None else {tuple(p) for p in np.asarray(pending)})
+        return real(self, n, upto=upto, skip=skip, pending=pending)
+
+    monkeypatch.setattr(HeboAdapter, "suggest", spy)
+    run(tmp_path / "t", iterations=3, resume=True)
+    logged_2 = {tuple(json.loads(x)["genome"]) for x in keep[-2:]}
+    assert logged_2 <= seen[0]  # the re-suggestion of batch 2's missing part sees its logged part as pending
+    genomes = [tuple(r["genome"]) for r in read_log(tmp_path / "t")]
+    assert len(genomes) == len(set(genomes)) == 2 + 3 * 4
