@@ -1804,9 +1804,9 @@ def estimate_t_lift(
     K = len(recordings)
     if t_all.size < 4 * K:
         raise InvalidInputError("estimate_t_lift: too few recorded samples around the release")
-    onehot = np.zeros((t_all.size, K))
-    onehot[np.arange(t_all.size), k_all] = 1.0
     cup_all = _hermite(t, cup, cup_v, t_all)
+
+    n_k = np.bincount(k_all, minlength=K).astype(float)
 
     def rss(c: int) -> float:
         tc = cand[c]
@@ -1815,12 +1815,27 @@ def estimate_t_lift(
         model[after] = _hermite(FT[c], FP[c], FV[c], t_all[after])
         r = p_all - model
         # Offsets b_k (all samples) and post-release velocity deviations d_k with
-        # sum_k d_k = 0 (the arm's vibration has zero mean), same design for x, y, z.
-        x = np.where(after, t_all - tc, 0.0)[:, None] * onehot
-        A = np.hstack([onehot, x[:, :-1] - x[:, -1:]])
-        coef, *_ = np.linalg.lstsq(A, r, rcond=None)
-        res = r - A @ coef
-        return float(np.sum(res * res))
+        # sum_k d_k = 0 (the arm's vibration has zero mean), same design for x, y, z:
+        # columns e_k (recording k's samples) and x e_j - x e_{K-1} (j < K-1), x = t - tc
+        # after the release. The normal equations from per-recording sums (the design
+        # is block-sparse: 2K-1 columns, thousands of rows), solved by least squares
+        # (rank-deficient when some recording has no sample after tc); RSS = |r|^2 - |A c|^2
+        # = |r|^2 - c . A^T r for any solution c.
+        x = np.where(after, t_all - tc, 0.0)
+        s1 = np.bincount(k_all, weights=x, minlength=K)
+        s2 = np.bincount(k_all, weights=x * x, minlength=K)
+        r0 = np.stack([np.bincount(k_all, weights=r[:, j], minlength=K) for j in range(3)], axis=1)  # (K, 3)
+        r1 = np.stack([np.bincount(k_all, weights=x * r[:, j], minlength=K) for j in range(3)], axis=1)
+        ata = np.zeros((2 * K - 1, 2 * K - 1))
+        ata[np.arange(K), np.arange(K)] = n_k
+        j = np.arange(K - 1)
+        ata[j, K + j] = ata[K + j, j] = s1[:-1]  # b_j . (x e_j)
+        ata[K - 1, K:] = ata[K:, K - 1] = -s1[-1]  # b_{K-1} . (-x e_{K-1})
+        ata[K:, K:] = s2[-1]
+        ata[K + j, K + j] += s2[:-1]
+        atr = np.vstack([r0, r1[:-1] - r1[-1:]])  # (2K-1, 3)
+        coef, *_ = np.linalg.lstsq(ata, atr, rcond=None)
+        return float(np.sum(r * r) - np.sum(coef * atr))
 
     vals = np.array([rss(c) for c in range(cand.size)])
     i = int(np.argmin(vals))

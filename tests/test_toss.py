@@ -464,3 +464,12 @@ def test_noise_validation() -> None:
         T.TossNoise(camera_rate=0.0)
     with pytest.raises(InvalidInputError, match="clock_offset"):
         T.TossNoise(clock_offset=(5.0, 1.0))
+
+
+def test_t_lift_of_the_shipped_recordings_is_unchanged() -> None:
+    """The release-time fit's residuals come from per-recording sums (normal equations);
+    the dense least-squares version gave these values (to the last digits)."""
+    from studio.toss import load_default_toss_model
+
+    assert load_default_toss_model("right").t_lift == pytest.approx(0.3619749100835438, abs=1e-12)
+    assert load_default_toss_model("left").t_lift == pytest.approx(0.3598136157052356, abs=1e-12)
