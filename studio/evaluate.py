@@ -585,13 +585,28 @@ class RobustEvaluation:
         """Mean reward over the toss samples (penalties included)."""
         return float(np.mean([e.reward.total for e in self.evaluations]))
 
+    def failed_checks(self) -> dict[str, int]:
+        """How many tosses failed each check (first failing check of each illegal toss)."""
+        out: dict[str, int] = {}
+        for e in self.evaluations:
+            check = e.to_json()["failed_check"]
+            if check is not None:
+                out[check] = out.get(check, 0) + 1
+        return out
+
     def to_json(self) -> dict[str, Any]:
+        """The first toss's metrics, with the robust verdict on top: ``legal``, ``reward``
+        (mean), ``legal_fraction``, ``failed_check`` (None when robustly legal, else the
+        check most tosses failed), ``failed_checks`` (counts) and ``per_toss``."""
         first = self.evaluations[0].to_json()
+        counts = self.failed_checks()
         first.update(
             {
                 "legal": self.legal,
                 "reward": self.reward,
                 "legal_fraction": self.legal_fraction,
+                "failed_check": None if self.legal or not counts else max(counts, key=lambda c: counts[c]),
+                "failed_checks": counts,
                 "tosses": len(self.evaluations),
                 "per_toss": [{"legal": e.legal, "reward": e.reward.total, "failed_check": e.to_json()["failed_check"]} for e in self.evaluations],
             }

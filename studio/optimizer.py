@@ -257,9 +257,10 @@ def evaluate_outcome(serve: HandServe, *, task: str, tosses: int, min_legal_frac
         j = ev.to_json()
         return Outcome(float(ev.reward.total), bool(ev.legal), str(ev.status), j["failed_check"], 1.0 if ev.legal else 0.0)
     rob = evaluate_robust(serve, ctx, task=task, tosses=tosses, min_legal_fraction=min_legal_fraction, rng=rng)
-    j = rob.evaluations[0].to_json()
+    counts = rob.failed_checks()
+    failed = None if rob.legal or not counts else max(counts, key=lambda c: counts[c])  # the check most tosses failed
     return Outcome(
-        float(rob.reward), bool(rob.legal), str(rob.evaluations[0].status), j["failed_check"], float(rob.legal_fraction),
+        float(rob.reward), bool(rob.legal), str(rob.evaluations[0].status), failed, float(rob.legal_fraction),
         tuple(float(e.reward.total) for e in rob.evaluations),
     )  # fmt: skip
 

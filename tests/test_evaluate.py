@@ -100,6 +100,9 @@ def test_robust_evaluation_plans_once(context: EvaluationContext) -> None:
     rewards = [e.reward.total for e in robust.evaluations]
     assert robust.reward == pytest.approx(np.mean(rewards))
     assert 0.0 <= robust.legal_fraction <= 1.0
+    j = robust.to_json()
+    assert sum(j["failed_checks"].values()) == sum(not e.legal for e in robust.evaluations)
+    assert j["failed_check"] is None if robust.legal else j["failed_check"] == max(j["failed_checks"], key=j["failed_checks"].get)
     with pytest.raises(InvalidInputError, match="tosses must be in"):
         evaluate_robust(serve, context, tosses=999)
 
