@@ -117,7 +117,7 @@ class Outcome:
     status: str
     """``legal``, ``illegal``, ``planner_failed`` or ``collision`` (first toss)."""
     failed_check: str | None = None
-    """Name of the first failing check (first toss), or ``None``."""
+    """Name of the first failing check (the mean toss), or with several tosses the check most of them failed; ``None`` when legal."""
     legal_fraction: float = 1.0
     """Fraction of legal tosses."""
     rewards: tuple[float, ...] = ()
