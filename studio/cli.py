@@ -301,7 +301,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p = sub.add_parser("app", help="start the serve design studio (viser, in the browser)")
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default: localhost only)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
-    p.add_argument("--serves", default=None, help="folder of hand-designed serve JSON files (default: examples/serves)")
+    p.add_argument("--serves", default=None, help="folder of hand-designed serve JSON files, read and written by 'save as seed' (default: ./serves; the shipped examples are listed too)")
     p.add_argument("--library", default=None, help="serve library folder to export to (default: ./serve-library)")
     handlers["app"] = _cmd_app
 
