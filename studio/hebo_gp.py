@@ -114,7 +114,7 @@ class FastGP:
     def loss(self) -> Tensor:
         """gpytorch's ``-ExactMarginalLogLikelihood`` (priors included) at the current parameters."""
         noise, c, os_, ls = self._constrained()
-        Z = self.Xc / ls
+        Z = (self.Xc - self._centre) / ls  # centred as gpytorch does (smaller float32 rounding in the distances)
         n = len(Z)
         K = os_ * _matern32(Z, Z) + torch.diag_embed(noise.expand(n))
         nll = _GaussNLL.apply(K, self.y - c, self.JITTERS, self.jitters_used) + 0.5 * n * _LOG_2PI
@@ -138,6 +138,7 @@ class FastGP:
         self.xscaler = TorchMinMaxScaler((-1, 1)).fit(Xc)
         self.yscaler = TorchStandardScaler().fit(y)
         self.Xc = self.xscaler.transform(Xc)
+        self._centre = self.Xc.mean(0)
         self.y = self.yscaler.transform(y).reshape(-1)
         d = self.Xc.shape[1]
         for _ in range(d):  # HEBO's kernel set-up draws a permutation per column from numpy's global
@@ -173,7 +174,7 @@ class FastGP:
         with torch.no_grad():
             noise, c, os_, ls = self._constrained()
             self._ls, self._os, self._c, self._noise = ls.clone(), os_.clone(), c.clone(), noise.clone()
-            Z = self.Xc / ls
+            Z = (self.Xc - self._centre) / ls
             n = len(Z)
             K = os_ * _matern32(Z, Z) + noise * torch.eye(n)
             self._Z, self._L = Z, _cholesky(K, self.JITTERS, self.jitters_used)
@@ -182,7 +183,7 @@ class FastGP:
     def predict(self, Xc: Tensor, Xe: Tensor) -> tuple[Tensor, Tensor]:
         """Posterior mean and variance (n, 1) at Xc (n, d) in the caller's units."""
         with torch.no_grad():
-            Zs = self.xscaler.transform(Xc.float()) / self._ls
+            Zs = (self.xscaler.transform(Xc.float()) - self._centre) / self._ls
             Ks = self._os * _matern32(Zs, self._Z)  # (n, m)
             mu = self._c + Ks @ self._alpha
             v = torch.linalg.solve_triangular(self._L, Ks.T, upper=False)
@@ -201,7 +202,7 @@ class FastGP:
             return
         with torch.no_grad():
             Xs = self.xscaler.transform(Xc.float())
-            Ks = self._os * _matern32(Xs / self._ls, self._Z)
+            Ks = self._os * _matern32((Xs - self._centre) / self._ls, self._Z)
             mu = self._c + (Ks @ self._alpha).reshape(-1)
             self.Xc = torch.cat([self.Xc, Xs])
             self.y = torch.cat([self.y, mu])
