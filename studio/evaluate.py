@@ -277,14 +277,19 @@ class Evaluation:
     def legal(self) -> bool:
         return self.status == "legal"
 
+    @property
+    def failed_check(self) -> str | None:
+        """Name of the first failing legality check, ``planner_failed`` or ``collision``; None when legal."""
+        if self.legality is not None and self.legality.first_failure is not None:
+            return str(self.legality.first_failure.name)
+        if self.status in ("planner_failed", "collision"):
+            return str(self.status)
+        return None
+
     def to_json(self) -> dict[str, Any]:
         """The metrics as a JSON-ready dict (CLI ``--json``)."""
         m = self.metrics
-        failed = None
-        if self.legality is not None and self.legality.first_failure is not None:
-            failed = self.legality.first_failure.name
-        elif self.status in ("planner_failed", "collision"):
-            failed = self.status
+        failed = self.failed_check
         plan = self.plan
         return {
             "name": self.serve.name,
@@ -589,7 +594,7 @@ class RobustEvaluation:
         """How many tosses failed each check (first failing check of each illegal toss)."""
         out: dict[str, int] = {}
         for e in self.evaluations:
-            check = e.to_json()["failed_check"]
+            check = e.failed_check
             if check is not None:
                 out[check] = out.get(check, 0) + 1
         return out
@@ -608,7 +613,7 @@ class RobustEvaluation:
                 "failed_check": None if self.legal or not counts else max(counts, key=lambda c: counts[c]),
                 "failed_checks": counts,
                 "tosses": len(self.evaluations),
-                "per_toss": [{"legal": e.legal, "reward": e.reward.total, "failed_check": e.to_json()["failed_check"]} for e in self.evaluations],
+                "per_toss": [{"legal": e.legal, "reward": e.reward.total, "failed_check": e.failed_check} for e in self.evaluations],
             }
         )
         return first

@@ -254,8 +254,7 @@ def evaluate_outcome(serve: HandServe, *, task: str, tosses: int, min_legal_frac
     ctx = context if context is not None else _context()
     if tosses <= 1:
         ev = evaluate_serve(serve, ctx, task=task)
-        j = ev.to_json()
-        return Outcome(float(ev.reward.total), bool(ev.legal), str(ev.status), j["failed_check"], 1.0 if ev.legal else 0.0)
+        return Outcome(float(ev.reward.total), bool(ev.legal), str(ev.status), ev.failed_check, 1.0 if ev.legal else 0.0)
     rob = evaluate_robust(serve, ctx, task=task, tosses=tosses, min_legal_fraction=min_legal_fraction, rng=rng)
     counts = rob.failed_checks()
     failed = None if rob.legal or not counts else max(counts, key=lambda c: counts[c])  # the check most tosses failed
