@@ -240,16 +240,11 @@ def train_serves(
 
     library = ServeLibrary(library_dir)
     context = EvaluationContext.default()
-    results: dict[int, TrainedServe] = {}
-    todo = []
-    for i, side, seed, run_dir in cfg.jobs():
-        done = _already(i, run_dir)
-        if done is not None:
-            results[i] = done
-            if progress:
-                progress(done, cfg.count)
-        else:
-            todo.append((i, side, seed, run_dir))
+    results: dict[int, TrainedServe] = {r.index: r for r in finished_runs(cfg)}
+    for done in results.values():
+        if progress:
+            progress(done, cfg.count)
+    todo = [job for job in cfg.jobs() if job[0] not in results]
     if ray_address is None:
         for i, side, seed, run_dir in todo:
             t0 = time.perf_counter()
