@@ -133,6 +133,8 @@ def test_adapter_never_suggests_pending_points_and_needs_fast_gp_to_fantasize() 
     again = a.suggest(5, pending=first)
     assert not {tuple(r) for r in first} & {tuple(r) for r in again}
     np.testing.assert_array_equal(a.suggest(5, pending=first[::-1]), again)  # order-free
+    with pytest.raises(InvalidInputError, match="pending points must be finite"):
+        a.suggest(5, pending=np.array([[0.1, np.nan, 0.2]]))
     slow = HeboAdapter(3, seed=2, config=HeboConfig(gp_epochs=10, es_pop=16, es_iters=4, fast_gp=False))
     slow.observe(X, ((X - 0.5) ** 2).sum(1))
     with pytest.raises(InvalidInputError, match="fantasize needs fast_gp"):
