@@ -143,7 +143,7 @@ def test_motion_bound_is_sound(robot, checker) -> None:  # type: ignore[no-untyp
         _min_jerk(robot.q_flat, np.clip(robot.q_flat + rng.uniform(-0.3, 0.3, 8) * (hi - lo), lo, hi), 120),
         _min_jerk(robot.q_rest, robot.q_flat, 80),
     ])
-    cum, view = checker._motion_bounds(qq)
+    steps, lever, view = checker._motion_bounds(qq)
     gm, gd = checker.geom_model, checker.geom_data
     d = np.empty((qq.shape[0], checker.n_pairs))
     for s, q in enumerate(qq):
@@ -152,7 +152,7 @@ def test_motion_bound_is_sound(robot, checker) -> None:  # type: ignore[no-untyp
     both_free = (d[1:] > 0) & (d[:-1] > 0)
     moved = np.abs(np.diff(d, axis=0))[both_free]
     assert moved.max() > 1e-3  # the pairs did move: the bound is exercised
-    B = cum[view].T  # (S, P)
+    B = (steps @ lever)[:, view]  # (S, P)
     slack = np.diff(d + B, axis=0)[both_free]
     # Only coal's GJK distance tolerance (1e-6 m) shows, ten times below the skipping margin.
     assert slack.size > 10_000 and slack.min() > -1e-5
@@ -193,3 +193,23 @@ def test_penetrating_cylinders_are_collisions(robot, checker) -> None:  # type: 
         assert {(checker.names[checker._pairs[k][0]], checker.names[checker._pairs[k][1]]) for k in pen} <= hits
         n_pen += len(pen)
     assert n_pen > 100
+
+
+def test_bounding_volume_bounds_are_below_coal_distances(robot, checker) -> None:  # type: ignore[no-untyped-def]
+    """The pre-filter's lower bounds never exceed coal's distance (else it could skip a
+    contact), and they are useful: most pairs are far from touching in random poses."""
+    import pinocchio as pin
+
+    rng = np.random.default_rng(3)
+    qs = rng.uniform(robot.limits.lower, robot.limits.upper, size=(200, 8))
+    low = checker._sphere_bounds(qs)  # (P, S)
+    gm, gd = checker.geom_model, checker.geom_data
+    d = np.empty_like(low)
+    for s, q in enumerate(qs):
+        pin.computeDistances(robot.model, checker.data, gm, gd, q)
+        d[:, s] = [r.min_distance for r in gd.distanceResults]
+    free = d > 0
+    assert np.all(low[free] <= d[free] + 1e-9)
+    assert np.all(low[~free] <= 1e-9)  # touching or penetrating pairs: volumes overlap
+    assert np.mean(low > 1e-4) > 0.95
+    assert np.median((d - low)[free]) < 0.05  # not absurdly loose
