@@ -487,7 +487,7 @@ def evaluate_motion(
     p = serve.params
     t_full, q_full = motion.t, motion.q
     t_start = toss.t_lift + 0.005
-    ball0 = toss.mean_state(t_start) if toss_sample is None else toss.ball_states_at(t_start)[toss_sample]
+    ball0 = toss.mean_state(t_start) if toss_sample is None else toss.recorded_state_at(t_start, toss_sample)
     t_end = p.tau + FLIGHT_AFTER_CONTACT
     ball = simulate(
         BallState(ball0.p, ball0.v, np.zeros(3)),

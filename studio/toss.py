@@ -1929,15 +1929,24 @@ class TossModel:
 
     def ball_states_at(self, time: float) -> tuple[BallState, ...]:
         """State of every recorded toss (smoothed) at ``time`` [s], zero spin."""
+        return tuple(self.recorded_state_at(time, k) for k in range(self.n_tosses))
+
+    def recorded_state_at(self, time: float, k: int) -> BallState:
+        """State of recorded toss ``k`` (smoothed) at ``time`` [s], zero spin (one toss of
+        :meth:`ball_states_at`, without computing the others: robust evaluations need one).
+
+        Raises:
+            InvalidInputError: ``time`` outside the toss model's interval or ``k`` not a toss index.
+        """
         from studio.ball import BallState
 
+        if not (0 <= int(k) < self.n_tosses) or int(k) != k:
+            raise InvalidInputError(f"toss index must be an integer in [0, {self.n_tosses}), got {k!r}")
         tt = self._check_t(time)
-        out = []
-        for k in range(self.n_tosses):
-            p = _hermite(self.t, self.tosses_p[k], self.tosses_v[k], np.array([tt]))[0]
-            v = np.array([np.interp(tt, self.t, self.tosses_v[k, :, j]) for j in range(3)])
-            out.append(BallState(p=p, v=v, w=np.zeros(3)))
-        return tuple(out)
+        k = int(k)
+        p = _hermite(self.t, self.tosses_p[k], self.tosses_v[k], np.array([tt]))[0]
+        v = np.array([np.interp(tt, self.t, self.tosses_v[k, :, j]) for j in range(3)])
+        return BallState(p=p, v=v, w=np.zeros(3))
 
     def sample(self, time: float, rng: np.random.Generator, *, method: Literal["gaussian", "recorded"] = "gaussian") -> BallState:
         """A random ball state at ``time`` [s], zero spin.

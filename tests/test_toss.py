@@ -336,6 +336,11 @@ def test_model_states_and_sampling(robot: Robot, right: T.TossPrimitive) -> None
     states = model.ball_states_at(tq)
     assert len(states) == 12 == model.n_tosses
     assert np.allclose(np.mean([s.p for s in states], axis=0), mean.p, atol=1e-6)
+    one = model.recorded_state_at(tq, 7)
+    assert np.array_equal(one.p, states[7].p) and np.array_equal(one.v, states[7].v)
+    for bad in (-1, 12, 2.5):
+        with pytest.raises(InvalidInputError, match="toss index"):
+            model.recorded_state_at(tq, bad)  # type: ignore[arg-type]
     rng = np.random.default_rng(0)
     draws = np.array([model.sample(tq, rng).p for _ in range(400)])
     assert np.allclose(draws.mean(axis=0), mean.p, atol=2e-3)
