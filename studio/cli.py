@@ -6,7 +6,6 @@ Commands import their modules lazily so that ``serve-studio --help`` stays fast.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from collections.abc import Callable, Sequence
 
@@ -402,24 +401,15 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     return parser, handlers
 
 
-THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-"""BLAS/OpenMP thread-count variables (the same as :data:`studio.optimizer.WORKER_THREAD_VARS`)."""
-
-
 def single_thread_pools(args: argparse.Namespace) -> bool:
     """For ``optimize``/``train`` that evaluate in this process (``--workers 1``): one
     BLAS/OpenMP thread, set in the environment before numpy loads (unless the user set
-    them). Measured: with numpy's default pool (one thread per core) four such runs on
-    2 cores each kept a second thread busy (~1/3 of the main thread's CPU) and ran ~3x
-    slower than single-threaded ones. Returns True when it set something."""
+    them; measurements: :mod:`studio.threads`). Returns True when it set something."""
     if args.command not in ("optimize", "train") or getattr(args, "workers", 2) != 1 or getattr(args, "ray", None):
         return False
-    changed = False
-    for var in THREAD_VARS:
-        if var not in os.environ:
-            os.environ[var] = "1"
-            changed = True
-    return changed
+    from studio.threads import single_thread_env  # numpy-free
+
+    return single_thread_env(keep_user_settings=True)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -74,10 +74,9 @@ def test_train_exports_legal_serves_and_resumes(capsys: pytest.CaptureFixture[st
 def test_in_process_training_gets_single_thread_pools(monkeypatch: pytest.MonkeyPatch) -> None:
     import argparse
 
-    from studio.cli import THREAD_VARS, single_thread_pools
-    from studio.optimizer import WORKER_THREAD_VARS
+    from studio.cli import single_thread_pools
+    from studio.threads import THREAD_VARS
 
-    assert set(THREAD_VARS) == set(WORKER_THREAD_VARS)
     for var in THREAD_VARS:
         monkeypatch.delenv(var, raising=False)
     monkeypatch.setenv("MKL_NUM_THREADS", "4")  # a user's own setting is kept
