@@ -30,7 +30,7 @@ Two ways to find the first colliding sample, with the same result:
   bodies, :meth:`CollisionChecker._motion_bounds`) stays below d - 0.1 mm; the pair is
   measured again at the first sample not certified, and checked with coal's collision
   test when closer than 0.1 mm. A vectorised pre-filter first bounds every pair's
-  distance from its bounding volumes (below) once per window of 32 samples, minus the
+  distance from its bounding volumes (below) once per window of 32 checked samples, minus the
   motion bound over the window; a pair is measured only inside windows where that lower
   bound reaches the margin. About 100 coal distance queries for a ~1100-sample strike
   (2000 without the pre-filter) instead of collision tests at every sample.
@@ -113,6 +113,7 @@ class CollisionChecker:
         court: Court = DEFAULT_COURT,
         floor: bool = True,
         stride: int = 1,
+        window: int = _HOT_WINDOW,
     ) -> None:
         """Build the geometry model.
 
@@ -121,17 +122,21 @@ class CollisionChecker:
             court: court geometry (table, net, posts, legs, extras).
             floor: add the floor half-space (z = court.floor_z).
             stride: check every stride-th sample (>= 1; the last sample is always checked).
+            window: checked samples per window of the conservative advancement's
+                bounding-volume pre-filter (>= 1; a tuning knob: the result does not
+                depend on it, see :data:`_HOT_WINDOW`).
 
         Raises:
             RobotModelError: the URDF's collision geometry cannot be loaded.
-            InvalidInputError: bad stride.
+            InvalidInputError: bad stride or window.
         """
-        if int(stride) < 1:
-            raise InvalidInputError(f"CollisionChecker: stride must be >= 1, got {stride}")
+        for name, val in (("stride", stride), ("window", window)):
+            if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < 1:
+                raise InvalidInputError(f"CollisionChecker: {name} must be an integer >= 1, got {val!r}")
         self.robot = robot
         self.stride = int(stride)
-        self.window = _HOT_WINDOW
-        """Samples per window of the conservative advancement's pre-filter (:meth:`_check_advancing`)."""
+        self.window = int(window)
+        """Checked samples per window of the conservative advancement's pre-filter (:meth:`_check_advancing`)."""
         model = robot.model
         try:
             gm = pin.buildGeomFromUrdf(model, str(robot.urdf_path), pin.GeometryType.COLLISION)
@@ -345,7 +350,7 @@ class CollisionChecker:
         Rg = Rj[:, self._g_joint]  # (S, G, 3, 3)
         C = np.ascontiguousarray((Pj[:, self._g_joint] + np.einsum("sgab,gb->sga", Rg, self._g_p)).transpose(2, 0, 1))
         r = self._radii
-        out = np.empty((len(self._pairs), S))
+        out = np.full((len(self._pairs), S), -np.inf)  # a pair no volume covers stays "may touch"
         a, b = self._rr[:, 0], self._rr[:, 1]
         d = C[:, :, a] - C[:, :, b]  # (3, S, R)
         rr = np.sqrt(d[0] ** 2 + d[1] ** 2 + d[2] ** 2) - (r[a] + r[b])
@@ -494,7 +499,7 @@ class CollisionChecker:
         ends = np.minimum(starts + W - 1, S - 1)
         growth = ((steps[ends] - steps[starts]) @ lever).T  # (U, nW)
         low = self._sphere_bounds(qs[starts]) - growth[view]  # (P, nW)
-        first_hot = np.where(low <= margin, np.arange(nW), nW)
+        first_hot = np.where(~(low > margin), np.arange(nW), nW)  # NaN counts as hot
         hot_next = np.minimum.accumulate(first_hot[:, ::-1], axis=1)[:, ::-1].tolist()
         heap = [(hot_next[k][0] * W, k) for k in range(n_pairs) if hot_next[k][0] < nW]
         heapq.heapify(heap)

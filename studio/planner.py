@@ -113,8 +113,10 @@ max(_FUNNEL, 2 x current); longer steps are halved."""
 _REDUCED_STEP_STOP: Final[float] = 5e-2
 """Reduced problem: the Newton-SQP stops after a full step smaller than this (scaled
 variables, max norm) once the racket errors are below 1 % of their tolerances. On the
-200 targets of ``benchmarks/planner.py``: 899 QPs instead of 1021 with a stop at 1e-3;
-plan costs within 1e-5 of the longer polish (95th percentile), errors at tau unchanged."""
+200 targets of ``benchmarks/planner.py`` (QPs of both problems): 1117 QPs with the
+session-9 stops (step 1e-3, stall 1e-5), 1021 with the stall threshold at 1e-4 (both
+problems), 899 with this stop as well; plan costs within 1e-5 of the longest polish at
+the 95th percentile (1.6e-4 at most), errors at tau unchanged."""
 _EQ: Final[int] = 5  # DAQP sense flag of an equality row
 
 
@@ -754,8 +756,6 @@ class _Result:
 def _better(a: _Result, b: _Result) -> bool:
     rank = {"ok": 0, "limits": 1, "tolerance": 2, "infeasible": 3, "failed": 4, "collision": 5}
     return (rank[a.status], a.score) < (rank[b.status], b.score)
-
-
 
 
 class _Context:

@@ -1940,7 +1940,7 @@ class TossModel:
         """
         from studio.ball import BallState
 
-        if not (0 <= int(k) < self.n_tosses) or int(k) != k:
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not (0 <= k < self.n_tosses):
             raise InvalidInputError(f"toss index must be an integer in [0, {self.n_tosses}), got {k!r}")
         tt = self._check_t(time)
         k = int(k)
@@ -1958,9 +1958,9 @@ class TossModel:
         """
         from studio.ball import BallState
 
-        states = self.ball_states_at(time)
         if method == "recorded":
-            return states[int(rng.integers(len(states)))]
+            return self.recorded_state_at(time, int(rng.integers(self.n_tosses)))
+        states = self.ball_states_at(time)
         if method != "gaussian":
             raise InvalidInputError(f"TossModel.sample: method must be 'gaussian' or 'recorded', got {method!r}")
         X = np.array([np.concatenate([s.p, s.v]) for s in states])

@@ -213,3 +213,30 @@ def test_bounding_volume_bounds_are_below_coal_distances(robot, checker) -> None
     assert np.all(low[~free] <= 1e-9)  # touching or penetrating pairs: volumes overlap
     assert np.mean(low > 1e-4) > 0.95
     assert np.median((d - low)[free]) < 0.05  # not absurdly loose
+
+
+@pytest.mark.parametrize(("window", "stride"), [(1, 1), (2, 3), (5, 1), (1000, 1), (32, 3)])
+def test_fast_check_equals_exhaustive_for_any_window_and_stride(robot, window: int, stride: int) -> None:  # type: ignore[no-untyped-def]
+    """The pre-filter's window is a speed knob only: the report never depends on it."""
+    chk = CollisionChecker(robot, window=window, stride=stride)
+    rng = np.random.default_rng(11)
+    L = robot.limits
+    lo, hi = np.asarray(L.lower), np.asarray(L.upper)
+    hits = 0
+    for _ in range(12):
+        q0 = np.clip(robot.q_flat + rng.uniform(-0.3, 0.3, 8) * (hi - lo), lo, hi)
+        q1 = np.clip(q0 + rng.uniform(-0.25, 0.25, 8) * (hi - lo), lo, hi)
+        n = int(rng.integers(1, 300))
+        qq = _min_jerk(q0, q1, n)
+        t = np.arange(n) * 1e-3
+        fast, ref = chk.check(t, qq), chk.check(t, qq, exhaustive=True)
+        assert fast == ref
+        hits += ref.collides
+    assert 0 < hits < 12
+
+
+@pytest.mark.parametrize("bad", [0, -1, 2.5, True, "4"])
+def test_bad_window_or_stride_rejected(robot, bad) -> None:  # type: ignore[no-untyped-def]
+    for kw in ("window", "stride"):
+        with pytest.raises(InvalidInputError, match=kw):
+            CollisionChecker(robot, **{kw: bad})

@@ -338,7 +338,7 @@ def test_model_states_and_sampling(robot: Robot, right: T.TossPrimitive) -> None
     assert np.allclose(np.mean([s.p for s in states], axis=0), mean.p, atol=1e-6)
     one = model.recorded_state_at(tq, 7)
     assert np.array_equal(one.p, states[7].p) and np.array_equal(one.v, states[7].v)
-    for bad in (-1, 12, 2.5):
+    for bad in (-1, 12, 2.5, True, None, "3", float("nan")):
         with pytest.raises(InvalidInputError, match="toss index"):
             model.recorded_state_at(tq, bad)  # type: ignore[arg-type]
     rng = np.random.default_rng(0)
