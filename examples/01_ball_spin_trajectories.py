@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 import matplotlib
+import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
@@ -53,7 +54,7 @@ def main(out: Path) -> None:
 
     print(f"{'case':<34} {'1st bounce (x, y) [m]':>24} {'2nd bounce (x, y) [m]':>24} {'after 2nd: top/back, side [rad/s]':>36}")
     for (label, w), color in zip(CASES.items(), COLORS, strict=True):
-        traj = B.simulate(B.BallState(launch_p, launch_v, w), 1.5, max_table_bounces=2)
+        traj = B.simulate(B.BallState(np.array(launch_p), np.array(launch_v), np.array(w)), 1.5, max_table_bounces=2)
         ax_side.plot(traj.p[:, 0], traj.p[:, 2], color=color, label=label)
         ax_top.plot(traj.p[:, 0], traj.p[:, 1], color=color, label=label)
         bounces = traj.table_bounces
