@@ -527,7 +527,9 @@ def evaluate_motion(
     metrics = ball_metrics(source, strike_t=strike_t)
     if legality.legal and metrics.second_bounce is not None:
         sb = metrics.second_bounce
-        terms = reward(p2=sb["p"], v2=sb["v"], w2=sb["w"], max_height=metrics.max_height or 0.0, weights=weights)
+        net = metrics.net if metrics.net is not None else {}
+        terms = reward(p2=sb["p"], v2=sb["v"], w2=sb["w"], max_height=metrics.max_height or 0.0, weights=weights,
+                       v_net=net.get("v"), w_net=net.get("w"))
     else:
         terms = RewardTerms(s_leg=legality.penalty)
     _lap(timings, "checks", clock)

@@ -116,3 +116,14 @@ def test_vectorized_racket_poses_match_pinocchio(context: EvaluationContext) -> 
         pose = robot.fk(q)
         np.testing.assert_allclose(P[i], pose.position, atol=1e-12)
         np.testing.assert_allclose(R[i], pose.rotation, atol=1e-12)
+
+
+def test_backspin_net_task_rewards_the_backspin_at_the_net(context: EvaluationContext) -> None:
+    serve = load_serve(Path(__file__).resolve().parent.parent / "examples" / "serves" / "backspin_right.json")
+    paper = evaluate_serve(serve, context, task="backspin")
+    net = evaluate_serve(serve, context, task="backspin_net")
+    assert paper.legal and net.legal
+    tb_net = net.metrics.net["topspin"]  # type: ignore[union-attr,index]
+    assert tb_net < -50
+    assert net.reward.r_topback == pytest.approx(min(-tb_net, 500.0) / 500.0)
+    assert net.reward.r_topback > paper.reward.r_topback + 0.1

@@ -69,3 +69,19 @@ def test_tasks_and_bad_input() -> None:
         RewardWeights(g_top=-1)
     with pytest.raises(InvalidInputError, match="finite"):
         reward(p2=[np.nan, 0, 0], v2=[1, 0, 0], w2=[0, 0, 0], max_height=0.1, weights=RewardWeights())
+
+
+def test_spin_at_net_rewards_the_net_crossing_spin() -> None:
+    """The backspin a receiver reads at the net, not the rolling spin after the bounce."""
+    after = dict(p2=[1.0, 0.0, 0.0], v2=[3.0, 0.0, 2.0], w2=[0.0, 150.0, 0.0], max_height=0.1)  # rolling topspin
+    paper = reward(**after, weights=task_weights("backspin"))
+    assert paper.r_topback == 0.0  # topspin after the bounce: no backspin reward
+    net = reward(**after, weights=task_weights("backspin_net"), v_net=[4.0, 0.0, -1.0], w_net=[0.0, -250.0, 0.0])
+    assert net.r_topback == pytest.approx(250.0 / 500.0)  # g_back * |w_tb| / w_bar at the net
+    assert net.r_height == paper.r_height and net.r_vel == paper.r_vel == 0.0
+    with pytest.raises(InvalidInputError, match="net crossing"):
+        reward(**after, weights=task_weights("backspin_net"))
+    with pytest.raises(InvalidInputError, match="finite 3-vectors"):
+        reward(**after, weights=task_weights("backspin_net"), v_net=[4.0, 0.0, np.nan], w_net=[0.0, -250.0, 0.0])
+    with pytest.raises(InvalidInputError, match="spin_at"):
+        RewardWeights(spin_at="apex")  # type: ignore[arg-type]
