@@ -29,7 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from studio.optimizer import EvaluatorPool, HeboConfig, bounds_for_toss, optimize_serve  # noqa: E402
-from studio.serve import load_serve  # noqa: E402
+from studio.serve import LimitScale, load_serve  # noqa: E402
 from studio.toss import load_default_toss_model  # noqa: E402
 
 Trace = list[tuple[int, float, float]]
@@ -49,6 +49,7 @@ def run_hebo(args: argparse.Namespace, config: HeboConfig, iterations: int, run_
     res = optimize_serve(
         side=args.side, task=args.task, run_dir=run_dir, seeds=seeds, iterations=iterations, population=args.population,
         tosses=args.tosses, seed=args.seed, workers=args.workers, progress=progress, config=config, overlap=overlap,
+        limit_scale=LimitScale.parse(args.limit_scale),
     )  # fmt: skip
     return trace, res
 
@@ -99,11 +100,12 @@ def main() -> None:
     ap.add_argument("--skip-main", action="store_true", help="with --compare: skip the full-budget run")
     ap.add_argument("--optimizers", nargs="+", choices=("chosen", "overlap", "defaults", "cma"), default=["chosen", "overlap", "defaults", "cma"], help="with --compare: which optimizers to run")
     ap.add_argument("--sequential", action="store_true", help="main run: suggest each batch after the previous one is evaluated (default: overlapped)")
+    ap.add_argument("--limit-scale", default="1", help="dynamic limit expansion of the runs (serve-studio optimize --limit-scale): 1.5 = acceleration and jerk limits x1.5")
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args()
 
     cfg = HeboConfig()
-    out: dict[str, object] = {"task": args.task, "side": args.side, "workers": args.workers, "tosses": args.tosses, "config": cfg.to_json()}
+    out: dict[str, object] = {"task": args.task, "side": args.side, "workers": args.workers, "tosses": args.tosses, "limit_scale": LimitScale.parse(args.limit_scale).to_json(), "config": cfg.to_json()}
     with tempfile.TemporaryDirectory() as tmp:
         if not args.skip_main:
             trace, res = run_hebo(args, cfg, args.iterations, Path(tmp) / "main", overlap=not args.sequential)
@@ -124,6 +126,14 @@ def main() -> None:
                 ("final serve: mean reward (10 tosses)", f"{s.mean_reward:+.3f}" if s else "-"),
                 ("final serve: legal fraction", f"{s.legal_fraction:.2f}" if s else "-"),
             ]
+            if res.best is not None:  # what the chosen serve does on the mean toss (after the timing)
+                from studio.evaluate import EvaluationContext, evaluate_serve
+
+                ev = evaluate_serve(res.best, EvaluationContext.for_training(), task=args.task)
+                sb = ev.metrics.second_bounce if ev.metrics is not None else None
+                if sb is not None:
+                    rows.append(("final serve, mean toss: ball at the second bounce", f"v_x {sb['v'][0]:+.2f} m/s, |v| {float(np.linalg.norm(sb['v'])):.2f} m/s, top/back {sb['topspin']:+.0f} rad/s, side {sb['sidespin']:+.0f} rad/s ({ev.status})"))
+                    out["second_bounce"] = {"v": sb["v"], "topspin": sb["topspin"], "sidespin": sb["sidespin"], "status": ev.status}
             slow = sorted(r["seconds"] for r in log)
             rows.append(("evaluation time median / p95 / max", f"{1000 * slow[len(slow) // 2]:.0f} / {1000 * slow[int(0.95 * len(slow))]:.0f} / {1000 * slow[-1]:.0f} ms"))
             for status in sorted({r["status"] for r in log}):

@@ -11,6 +11,11 @@ from collections.abc import Callable, Sequence
 
 Handler = Callable[[argparse.Namespace], int]
 
+LIMIT_SCALE_HELP = (
+    "dynamic limit expansion: a factor on the joint acceleration and jerk limits (e.g. 1.3), "
+    "or velocity=..,acceleration=..,jerk=.. factors"
+)
+
 
 def _cmd_app(args: argparse.Namespace) -> int:
     from studio.app import run_app
@@ -22,10 +27,14 @@ def _cmd_app(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
+    from dataclasses import replace
+
     from studio.evaluate import EvaluationContext, evaluate_robust, evaluate_serve, report_markdown
-    from studio.serve import load_serve
+    from studio.serve import LimitScale, load_serve
 
     serve = load_serve(args.serve)
+    if args.limit_scale is not None:
+        serve = replace(serve, limit_scale=LimitScale.parse(args.limit_scale))
     context = EvaluationContext.default()
     task = args.task or serve.task or "topspin_velocity"
     if args.tosses > 1:
@@ -59,10 +68,13 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from studio.evaluate import EvaluationContext, evaluate_serve
+    from dataclasses import replace
+
     from studio.optimizer import optimize_serve
-    from studio.serve import HandServe, load_serve
+    from studio.serve import LimitScale, load_serve
 
     seeds = [load_serve(p) for p in args.seeds]
+    limit_scale = LimitScale.parse(args.limit_scale) if args.limit_scale is not None else None
     run_dir = Path(args.run_dir or f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{args.side}-{args.task}")
     start = time.perf_counter()
 
@@ -85,6 +97,7 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
             stop=stop,
             resume=args.resume,
             overlap=False if args.sequential else None,
+            limit_scale=limit_scale,
         )
     except KeyboardInterrupt:
         print(f"\ninterrupted: every evaluation so far is in {run_dir}; continue with --resume --run-dir {run_dir}")
@@ -95,7 +108,7 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
         return 1
     s = result.summary
     print(f"chosen serve: mean reward {s.mean_reward:+.3f} on {len(s.rewards)} fresh tosses, legal on {100 * s.legal_fraction:.0f} % ({'legal' if s.legal else 'not legal'})")
-    best = HandServe(name=args.name or f"{args.task} {args.side} seed {args.seed}", side=args.side, params=result.best.params, task=args.task, notes=f"HEBO run {run_dir}, seed {args.seed}")
+    best = replace(result.best, name=args.name or f"{args.task} {args.side} seed {args.seed}", task=args.task, notes=f"HEBO run {run_dir}, seed {args.seed}")
     out = run_dir / "best_serve.json"
     from studio.serve import save_serve
 
@@ -116,13 +129,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
     export each legal chosen serve to the library, and print a Table II-like summary."""
     from pathlib import Path
 
-    from studio.serve import load_serve
+    from studio.serve import LimitScale, load_serve
     from studio.training import TrainConfig, TrainedServe, finished_runs, summary_table, train_serves
 
     cfg = TrainConfig(
         task=args.task, count=args.count, side=args.side, iterations=args.iterations, population=args.population, tosses=args.tosses,
         seed=args.seed, workers=args.workers, seeds=tuple(load_serve(p) for p in args.seeds), runs_dir=Path(args.runs or f"runs/train-{args.task}"),
-        overlap=False if args.sequential else None,
+        overlap=False if args.sequential else None, limit_scale=LimitScale.parse(args.limit_scale) if args.limit_scale else LimitScale(),
     )  # fmt: skip
 
     def progress(r: TrainedServe, total: int) -> None:
@@ -312,6 +325,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--mujoco", action="store_true", help="check with the MuJoCo rollout instead of the analytic predictor")
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     p.add_argument("--export", default=None, metavar="DIR", help="write the plan to the serve library folder DIR")
+    p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default: the serve file's limit_scale, else 1)")
     handlers["evaluate"] = _cmd_evaluate
 
     p = sub.add_parser("optimize", help="optimize one serve with HEBO, seeded from hand-designed serves")
@@ -328,6 +342,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--resume", action="store_true", help="continue the run in --run-dir without repeating evaluations")
     p.add_argument("--export", default=None, metavar="DIR", help="export the chosen serve to this serve library")
     p.add_argument("--sequential", action="store_true", help="suggest each batch after the previous one is evaluated (default with 2+ workers: the next batch is suggested while the workers evaluate)")
+    p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default 1; on --resume: the run's own)")
     handlers["optimize"] = _cmd_optimize
 
     p = sub.add_parser("train", help="train COUNT serves for a task (one HEBO run each) into a library, print a Table II-like summary")
@@ -344,6 +359,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--seed", type=int, default=0, help="seed of the first run (run i uses seed + i)")
     p.add_argument("--runs", default=None, help="folder of the run folders (default runs/train-<task>); rerun to resume")
     p.add_argument("--sequential", action="store_true", help="no overlapped suggestions (see optimize --sequential)")
+    p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default 1; resumed runs must match)")
     p.add_argument("--ray", default=None, metavar="ADDRESS", help="run the runs as tasks on a Ray cluster (ray.init address, e.g. auto or ray://host:10001; 'local' starts a local instance)")
     handlers["train"] = _cmd_train
 

@@ -48,6 +48,7 @@ from studio.court import DEFAULT_COURT
 from studio.errors import StudioError
 from studio.library import INDEX_NAME, LibraryEntry, ServeLibrary
 from studio.selection import entry_cluster, net_state, spin_cluster
+from studio.serve import LimitScale
 
 CLUSTERS = ("topspin", "backspin", "sidespin", "mixed", "no spin", "no net crossing")
 """Spin cluster labels, in legend order."""
@@ -64,8 +65,9 @@ ALL = "all"
 """Filter value that keeps every row."""
 SCATTER_AXES = ("horizontal speed vs total spin", "topspin vs sidespin")
 """The two scatter views."""
-COLUMNS = ("name", "side", "task", "legal", "reward", "cluster", "speed_h", "spin", "topspin", "sidespin", "cork", "clearance", "provenance", "created", "id")
-"""Table columns (``speed_h`` [m/s] and spins [rad/s] at the net crossing, ``clearance`` [m])."""
+COLUMNS = ("name", "side", "task", "legal", "reward", "cluster", "speed_h", "spin", "topspin", "sidespin", "cork", "clearance", "limits", "provenance", "created", "id")
+"""Table columns (``speed_h`` [m/s] and spins [rad/s] at the net crossing, ``clearance`` [m],
+``limits``: the dynamic limit expansion the serve needs, :func:`limits_text`)."""
 TITLES = {
     "speed_h": "net v_h [m/s]",
     "spin": "net |ω| [rad/s]",
@@ -73,8 +75,16 @@ TITLES = {
     "sidespin": "net side [rad/s]",
     "cork": "net cork [rad/s]",
     "clearance": "net clearance [m]",
+    "limits": "limits [x robot's]",
 }
 """Table column titles with units."""
+
+
+def limits_text(scale: LimitScale) -> str:
+    """``"1"`` for the robot's own limits, else the factors, e.g. ``"v 1.1, a 1.5, j 1.5"``."""
+    if scale.is_identity:
+        return "1"
+    return f"v {scale.velocity:g}, a {scale.acceleration:g}, j {scale.jerk:g}"
 
 
 def library_table(entries: list[LibraryEntry]) -> pd.DataFrame:
@@ -99,6 +109,7 @@ def library_table(entries: list[LibraryEntry]) -> pd.DataFrame:
                 "sidespin": net.sidespin if net else math.nan,
                 "cork": net.cork if net else math.nan,
                 "clearance": net.clearance if net else math.nan,
+                "limits": limits_text(e.limit_scale),
                 "provenance": prov_text,
                 "created": str(d["created"]),
                 "id": e.id,

@@ -20,7 +20,7 @@ Times are on the toss command clock (t = 0 at the start of the toss primitive).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any, Literal
 
@@ -44,7 +44,7 @@ from studio.reward import PLANNER_FAILURE_PENALTY, RewardTerms, RewardWeights, r
 from studio.robot import Robot, load_robot
 from studio.rules import LegalityReport, RuleParams, ServeOutcome, check_serve, net_crossing
 from studio.scene import COLORS, Marker, PathSegment, Playback, RacketTarget, SceneFrame
-from studio.serve import HandServe, TossSide
+from studio.serve import HandServe, LimitScale, TossSide
 from studio.toss import TossModel, load_default_toss_model
 
 Status = Literal["legal", "illegal", "planner_failed", "collision"]
@@ -82,6 +82,7 @@ class EvaluationContext:
     _tosses: dict[str, TossModel] = field(default_factory=dict)
     _toss_reports: dict[str, Any] = field(default_factory=dict)
     _preparations: dict[str, Any] = field(default_factory=dict)
+    _planners: dict[LimitScale, Any] = field(default_factory=dict)
 
     @classmethod
     def default(cls) -> EvaluationContext:
@@ -129,6 +130,20 @@ class EvaluationContext:
         from studio.planner import StrikePlanner
 
         return StrikePlanner(self.robot, options=self.planner_options)
+
+    def planner_for(self, scale: LimitScale) -> Any:
+        """The strike planner with the derivative limits expanded by ``scale`` (the paper's
+        dynamic limit expansion): :attr:`planner` for the identity, else one planner per
+        scale, cached (building one takes ~50 ms)."""
+        if scale.is_identity:
+            return self.planner
+        if scale not in self._planners:
+            from studio.planner import PlannerOptions, StrikePlanner
+
+            options = self.planner_options if self.planner_options is not None else PlannerOptions()
+            base = options.limits if options.limits is not None else self.robot.limits
+            self._planners[scale] = StrikePlanner(self.robot, options=replace(options, limits=scale.apply(base)))
+        return self._planners[scale]
 
     @cached_property
     def racket_poses(self) -> Any:
@@ -433,7 +448,7 @@ def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any
         return failed("planner_failed", f"contact time tau = {p.tau:.3f} s leaves no time to strike (lift at {toss.t_lift:.3f} s)")
     # The strike continues the toss commands u[:k] seamlessly from the predicted state at t_k.
     start, i_sw = start_from_toss(prim, t_switch)
-    plan = context.planner.plan(
+    plan = context.planner_for(serve.limit_scale).plan(
         start,
         StrikeTarget(
             tau=p.tau - t_switch,

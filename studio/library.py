@@ -7,7 +7,8 @@ Format (``DESIGN.md``, schema ``serve-studio/library@1``):
   as in serve JSON files), the predicted ball state at the net crossing and at the
   second bounce, ``legal``, ``reward`` and its ``terms``, ``provenance`` (hand-designed
   or optimizer run and seed), ``robot`` (model name and SHA-256 of the robot source and
-  URDF, joint limits scale), ``created`` (UTC ISO time), ``usage`` counters and the
+  URDF, the serve's ``limit_scale`` and the effective derivative ``limits`` it was
+  planned with), ``created`` (UTC ISO time), ``usage`` counters and the
   ``arrays`` file name;
 - ``<id>.npz`` per serve (plain arrays, no pickled objects): ``t`` (M,) [s] and ``u``
   (M, 8) joint commands of toss + strike + return at 1 kHz on the toss clock, ``q``
@@ -39,7 +40,7 @@ import numpy.typing as npt
 from studio.errors import DataFileError, InvalidInputError
 from studio.paths import robots_dir
 from studio.robot_description import load_spec
-from studio.serve import HandServe, serve_from_json
+from studio.serve import HandServe, LimitScale, serve_from_json
 
 LIBRARY_SCHEMA = "serve-studio/library@1"
 """Schema tag of the index file."""
@@ -53,12 +54,20 @@ USAGE_KEYS = ("used", "won", "lost", "aces")
 after them, aces (direct serve points)."""
 
 
-def robot_identity() -> dict[str, str]:
-    """Name and SHA-256 digests of the shipped robot source (TOML) and URDF."""
+def robot_identity(limit_scale: LimitScale | None = None) -> dict[str, Any]:
+    """Name and SHA-256 digests of the shipped robot source (TOML) and URDF, the
+    dynamic limit expansion a serve was planned with (``limit_scale``) and the effective
+    derivative limits it needs (``limits``: ``velocity`` [m/s | rad/s], ``acceleration``
+    [m/s^2 | rad/s^2], ``jerk`` [m/s^3 | rad/s^3], 8 values each in joint order): a
+    controller can refuse a plan that needs more than its robot is set up for."""
     folder = robots_dir()
-    out = {"name": "serve_robot"}
+    out: dict[str, Any] = {"name": "serve_robot"}
     for key, name in (("toml_sha256", "serve_robot.toml"), ("urdf_sha256", "serve_robot.urdf")):
         out[key] = hashlib.sha256((folder / name).read_bytes()).hexdigest()
+    scale = limit_scale if limit_scale is not None else LimitScale()
+    joints = load_spec().actuated_joints
+    out["limit_scale"] = scale.to_json()
+    out["limits"] = {order: [float(getattr(j, order)) * getattr(scale, order) for j in joints] for order in ("velocity", "acceleration", "jerk")}
     return out
 
 
@@ -92,7 +101,21 @@ class LibraryEntry:
     def serve(self) -> HandServe:
         """The serve parameters as a hand-designed serve (for the studio or as a seed)."""
         d = self.data
-        return serve_from_json({"name": d["name"], "side": d["side"], "params": d["params"], "task": d.get("task")}, source=f"{self.folder / INDEX_NAME}: serve {self.id}")
+        doc = {"name": d["name"], "side": d["side"], "params": d["params"], "task": d.get("task")}
+        scale = self.limit_scale
+        if not scale.is_identity:
+            doc["limit_scale"] = scale.to_json()
+        return serve_from_json(doc, source=f"{self.folder / INDEX_NAME}: serve {self.id}")
+
+    @property
+    def limit_scale(self) -> LimitScale:
+        """The dynamic limit expansion the serve was planned with (``robot.limit_scale``;
+        the identity for entries written before it was recorded)."""
+        robot = self.data.get("robot")
+        raw = robot.get("limit_scale") if isinstance(robot, dict) else None
+        if raw is None:
+            return LimitScale()
+        return LimitScale.from_json(raw, source=f"{self.folder / INDEX_NAME}: serve {self.id}: robot")
 
     def arrays(self) -> dict[str, npt.NDArray[Any]]:
         """The serve's arrays, validated (never unpickled)."""
@@ -188,6 +211,11 @@ class ServeLibrary:
                     n = usage.get(key, 0)
                     if isinstance(n, bool) or not isinstance(n, int) or n < 0:
                         raise DataFileError(self.index_path, f"field '{where}.usage.{key}': must be a non-negative integer, got {n!r}")
+            robot = entry.get("robot")
+            if robot is not None and not isinstance(robot, dict):
+                raise DataFileError(self.index_path, f"field '{where}.robot': must be an object")
+            if isinstance(robot, dict) and "limit_scale" in robot:
+                LimitScale.from_json(robot["limit_scale"], source=f"{self.index_path}: {where}.robot")
             e = LibraryEntry(entry, self.folder)
             e.serve  # validates name, side and params, naming the entry
             out.append(e)
@@ -272,7 +300,7 @@ class ServeLibrary:
             "reward": float(ev.reward.total),
             "terms": ev.reward.as_dict(),
             "provenance": provenance or {"kind": "hand-designed"},
-            "robot": robot_identity(),
+            "robot": robot_identity(ev.serve.limit_scale),
             "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "usage": {"used": 0, "won": 0, "lost": 0, "aces": 0},
             "arrays": f"{sid}.npz",

@@ -52,7 +52,7 @@ import numpy.typing as npt
 from studio.errors import DataFileError, InvalidInputError
 from studio.hebo_adapter import HeboAdapter, HeboConfig
 from studio.reward import PLANNER_FAILURE_PENALTY
-from studio.serve import GENE_NAMES, GenomeBounds, HandServe, ServeParams, TossSide
+from studio.serve import GENE_NAMES, GenomeBounds, HandServe, LimitScale, ServeParams, TossSide
 from studio.threads import THREAD_VARS, single_thread_env
 
 __all__ = [
@@ -262,10 +262,10 @@ def evaluate_outcome(serve: HandServe, *, task: str, tosses: int, min_legal_frac
     )  # fmt: skip
 
 
-def _worker_eval(job: tuple[str, str, list[float], int, float, int]) -> tuple[dict[str, Any], float]:
-    side, task, x, tosses, p, rng_seed = job
+def _worker_eval(job: tuple[str, str, list[float], int, float, int, dict[str, float]]) -> tuple[dict[str, Any], float]:
+    side, task, x, tosses, p, rng_seed, scale = job
     t0 = time.perf_counter()
-    serve = HandServe(name="candidate", side=side, params=ServeParams.from_vector(x))  # type: ignore[arg-type]
+    serve = HandServe(name="candidate", side=side, params=ServeParams.from_vector(x), limit_scale=LimitScale(**scale))  # type: ignore[arg-type]
     out = evaluate_outcome(serve, task=task, tosses=tosses, min_legal_fraction=p, rng=np.random.default_rng(rng_seed))
     return asdict(out), time.perf_counter() - t0
 
@@ -277,12 +277,13 @@ class EvaluatorPool:
     (initializer; :meth:`~studio.evaluate.EvaluationContext.for_training`, IPOPT fallback
     off unless ``ipopt_fallback``) and warms it up for ``side``. The workers are spawned
     at construction and initialize in the background (about 3 s) while the caller goes on.
+    Every candidate is planned with ``limit_scale`` (:class:`~studio.serve.LimitScale`).
     Use as a context manager; ``evaluate`` overrides the real evaluation (in-process).
     """
 
     def __init__(
         self, *, side: TossSide, task: str, workers: int = 2, min_legal_fraction: float = 0.8, evaluate: EvaluateFn | None = None,
-        context: Any = None, ipopt_fallback: bool = False,
+        context: Any = None, ipopt_fallback: bool = False, limit_scale: LimitScale | None = None,
     ) -> None:  # fmt: skip
         if workers < 1:
             raise InvalidInputError(f"workers must be >= 1, got {workers}")
@@ -290,6 +291,7 @@ class EvaluatorPool:
         self._evaluate = evaluate
         self._context = context
         self._ipopt_fallback = bool(ipopt_fallback)
+        self.limit_scale = limit_scale if limit_scale is not None else LimitScale()
         self._pool: ProcessPoolExecutor | None = None
         if evaluate is None and workers > 1:
             self._pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init, initargs=(side, self._ipopt_fallback))
@@ -328,7 +330,8 @@ class EvaluatorPool:
         X = np.atleast_2d(X)
         if self._evaluate is not None or self._pool is None:
             return self._map_here(X, tosses, rng_seeds)
-        futs = [self._pool.submit(_worker_eval, (self.side, self.task, [float(v) for v in x], tosses, self.p, int(s))) for x, s in zip(X, rng_seeds)]
+        scale = self.limit_scale.to_json()
+        futs = [self._pool.submit(_worker_eval, (self.side, self.task, [float(v) for v in x], tosses, self.p, int(s), scale)) for x, s in zip(X, rng_seeds)]
 
         def results() -> Iterator[tuple[Outcome, float]]:
             for f in futs:
@@ -341,7 +344,7 @@ class EvaluatorPool:
     def _map_here(self, X: npt.NDArray[np.float64], tosses: int, rng_seeds: Sequence[int]) -> Iterator[tuple[Outcome, float]]:
         for x, s in zip(X, rng_seeds):
             t0 = time.perf_counter()
-            serve = HandServe(name="candidate", side=self.side, params=ServeParams.from_vector(x))
+            serve = HandServe(name="candidate", side=self.side, params=ServeParams.from_vector(x), limit_scale=self.limit_scale)
             rng = np.random.default_rng(s)
             if self._evaluate is not None:
                 out = self._evaluate(serve, tosses, rng)
@@ -508,6 +511,7 @@ def optimize_serve(
     ipopt_fallback: bool = False,
     on_record: Callable[[dict[str, Any]], None] | None = None,
     overlap: bool | None = None,
+    limit_scale: LimitScale | None = None,
 ) -> OptimizationResult:
     """Optimize a serve's genome for ``task`` on the ``side`` toss with HEBO (maximize F).
 
@@ -549,6 +553,10 @@ def optimize_serve(
             serve): within the seed-to-seed spread. ``None`` (default): on when
             ``workers > 1`` and the evaluation is the real one (with one process the
             evaluation cannot run beside the suggestion); on resume the run's own loop.
+        limit_scale: the paper's dynamic limit expansion (:class:`~studio.serve.LimitScale`):
+            every candidate, the seeds included, is planned with the robot's derivative
+            limits times these factors, and the chosen serve carries them. ``None``: the
+            robot's own limits, or on resume the run's own scale.
     """
     overlap_given, config_given = overlap is not None, config is not None
     if overlap is None:
@@ -563,8 +571,15 @@ def optimize_serve(
     for s in seeds:
         if s.side != side:
             raise InvalidInputError(f"seed serve {s.name!r} is for the {s.side} toss, the run is for the {side} toss")
+    if limit_scale is None:
+        limit_scale = LimitScale()
+        if resume and (Path(run_dir) / "run.json").exists():  # a resumed run keeps its own scale
+            try:
+                limit_scale = LimitScale.from_json(json.loads((Path(run_dir) / "run.json").read_text()).get("limit_scale", {}), source=str(Path(run_dir) / "run.json"))
+            except ValueError:
+                pass  # unreadable run.json: reported by the resume check below
     # the workers start first and initialize while this process loads the toss model and HEBO
-    with EvaluatorPool(side=side, task=task, workers=workers, min_legal_fraction=min_legal_fraction, evaluate=evaluate, context=context, ipopt_fallback=ipopt_fallback) as pool:
+    with EvaluatorPool(side=side, task=task, workers=workers, min_legal_fraction=min_legal_fraction, evaluate=evaluate, context=context, ipopt_fallback=ipopt_fallback, limit_scale=limit_scale) as pool:
         if bounds is None:
             if context is not None:
                 toss = context.toss_model(side)
@@ -596,6 +611,7 @@ def optimize_serve(
             "config": config.to_json(),
             "ipopt_fallback": bool(ipopt_fallback),
             "overlap": bool(overlap),
+            "limit_scale": limit_scale.to_json(),
             "seeds": [s.to_json() for s in seeds],
         }
         log_path = run_dir / "evaluations.jsonl"
@@ -604,6 +620,7 @@ def optimize_serve(
             old = json.loads((run_dir / "run.json").read_text())
             old.setdefault("ipopt_fallback", False)  # runs logged before these options existed
             old.setdefault("overlap", False)
+            old.setdefault("limit_scale", LimitScale().to_json())  # runs logged before dynamic limit expansion
             if not overlap_given:  # a resumed run keeps its own loop unless the caller chose one
                 overlap = bool(old["overlap"])
                 run_json["overlap"] = overlap
@@ -617,7 +634,7 @@ def optimize_serve(
                 except (TypeError, InvalidInputError) as exc:
                     raise InvalidInputError(f"resume: {run_dir / 'run.json'}: unusable HEBO configuration {cfg_old!r} ({exc})") from exc
                 run_json["config"] = config.to_json()
-            for key in ("side", "task", "seed", "population", "tosses", "bounds", "config", "min_legal_fraction", "ipopt_fallback", "overlap"):
+            for key in ("side", "task", "seed", "population", "tosses", "bounds", "config", "min_legal_fraction", "ipopt_fallback", "overlap", "limit_scale"):
                 if old.get(key) != json.loads(json.dumps(run_json[key])):
                     raise InvalidInputError(f"resume: {run_dir / 'run.json'} has {key}={old.get(key)!r}, this call has {run_json[key]!r}")
             records = _read_jsonl(log_path)
@@ -750,7 +767,7 @@ def optimize_serve(
             log.close()
 
         summary = candidates[0] if candidates else None
-        best_serve = HandServe(name=f"{task}_{side}_hebo_s{seed}", side=side, params=summary.params, task=task, notes=f"HEBO run {run_dir.name}: mean reward {summary.mean_reward:+.3f} over {len(summary.rewards)} tosses, legal fraction {summary.legal_fraction:.2f}") if summary else None  # fmt: skip
+        best_serve = HandServe(name=f"{task}_{side}_hebo_s{seed}", side=side, params=summary.params, task=task, limit_scale=limit_scale, notes=f"HEBO run {run_dir.name}: mean reward {summary.mean_reward:+.3f} over {len(summary.rewards)} tosses, legal fraction {summary.legal_fraction:.2f}") if summary else None  # fmt: skip
         timings["total"] = time.perf_counter() - t_start
         return OptimizationResult(
             best=best_serve, summary=summary, candidates=tuple(candidates), history=np.array([r.reward for r in records], dtype=float),

@@ -25,12 +25,15 @@ import json
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import numpy.typing as npt
 
 from studio.errors import DataFileError, InvalidInputError
+
+if TYPE_CHECKING:
+    from studio.robot import JointLimits
 
 TossSide = Literal["right", "left"]
 SERVE_SCHEMA = "serve-studio/serve@1"
@@ -183,6 +186,99 @@ class ServeParams:
         return cls.from_vector(low + z * (high - low))
 
 
+LIMIT_SCALE_RANGE: tuple[float, float] = (0.25, 4.0)
+"""Accepted range of each :class:`LimitScale` factor [-]: a guard against typos (a factor
+of 10 would ask the stand-in joint dynamics for accelerations no real arm of this size
+reaches), not a property of the robot."""
+
+
+@dataclass(frozen=True, slots=True)
+class LimitScale:
+    """The paper's "dynamic limit expansion": factors on the robot's derivative limits.
+
+    The strike planner plans with the robot's velocity, acceleration and jerk limits
+    (``robots/serve_robot.toml``) times these factors; position limits never change. The
+    paper raised the acceleration and jerk limits once the measured joint torques showed
+    headroom, which gave faster serves with more spin. A serve carries the scale it was
+    planned with, so that its plan can be reproduced and a controller knows the limits it
+    needs (library entries record the effective limits).
+    """
+
+    velocity: float = 1.0
+    """Factor on the joint speed limits [-]."""
+    acceleration: float = 1.0
+    """Factor on the joint acceleration limits [-]."""
+    jerk: float = 1.0
+    """Factor on the joint jerk limits [-]."""
+
+    def __post_init__(self) -> None:
+        lo, hi = LIMIT_SCALE_RANGE
+        for name in ("velocity", "acceleration", "jerk"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not lo <= value <= hi:
+                raise InvalidInputError(f"LimitScale.{name} must be a number in [{lo}, {hi}], got {value!r}")
+            object.__setattr__(self, name, float(value))
+
+    @classmethod
+    def uniform(cls, factor: float) -> LimitScale:
+        """The paper's expansion: acceleration and jerk limits times ``factor``, speed unchanged."""
+        return cls(acceleration=factor, jerk=factor)
+
+    @property
+    def is_identity(self) -> bool:
+        """True when every factor is 1 (the robot's own limits)."""
+        return self.velocity == 1.0 and self.acceleration == 1.0 and self.jerk == 1.0
+
+    def to_json(self) -> dict[str, float]:
+        """``{"velocity": ..., "acceleration": ..., "jerk": ...}``."""
+        return {"velocity": self.velocity, "acceleration": self.acceleration, "jerk": self.jerk}
+
+    @classmethod
+    def from_json(cls, data: Any, *, source: str = "<limit_scale>") -> LimitScale:
+        """Inverse of :meth:`to_json`; missing factors are 1. Errors name ``source`` and the field."""
+        if not isinstance(data, dict):
+            raise DataFileError(source, f"field 'limit_scale': must be an object with velocity/acceleration/jerk factors, got {data!r}")
+        unknown = set(data) - {"velocity", "acceleration", "jerk"}
+        if unknown:
+            raise DataFileError(source, f"field 'limit_scale': unknown keys {sorted(unknown)} (known: acceleration, jerk, velocity)")
+        try:
+            return cls(**{k: data[k] for k in ("velocity", "acceleration", "jerk") if k in data})
+        except InvalidInputError as err:
+            raise DataFileError(source, f"field 'limit_scale': {err}") from None
+
+    @classmethod
+    def parse(cls, text: str) -> LimitScale:
+        """From a command-line value: ``"1.3"`` (acceleration and jerk, :meth:`uniform`) or
+        ``"velocity=1.1,acceleration=1.3,jerk=1.5"`` (missing factors are 1)."""
+        text = text.strip()
+        try:
+            factor = float(text)
+        except ValueError:
+            pass
+        else:
+            return cls.uniform(factor)
+        values: dict[str, float] = {}
+        for part in text.split(","):
+            key, sep, value = part.partition("=")
+            key = key.strip()
+            if not sep or key not in ("velocity", "acceleration", "jerk"):
+                raise InvalidInputError(f"limit scale {text!r}: expected a number or velocity=..,acceleration=..,jerk=.. (got part {part!r})")
+            try:
+                values[key] = float(value)
+            except ValueError:
+                raise InvalidInputError(f"limit scale {text!r}: {key} must be a number, got {value.strip()!r}") from None
+        return cls(**values)
+
+    def apply(self, limits: JointLimits) -> JointLimits:
+        """``limits`` with their derivative limits scaled (position limits unchanged)."""
+        out = limits
+        for name in ("velocity", "acceleration", "jerk"):
+            factor = getattr(self, name)
+            if factor != 1.0:
+                out = out.expanded(factor, orders=(name,))
+        return out
+
+
 @dataclass(frozen=True, slots=True)
 class HandServe:
     """A hand-designed serve: what a user saves from the studio as a seed (JSON file)."""
@@ -199,6 +295,9 @@ class HandServe:
     """Optional reward task preset the serve was designed for."""
     extra: dict[str, Any] = field(default_factory=dict)
     """Other JSON fields kept verbatim on round trips (forward compatibility)."""
+    limit_scale: LimitScale = field(default_factory=LimitScale)
+    """Derivative-limit expansion the serve is planned with (JSON field ``limit_scale``,
+    written only when it is not the identity)."""
 
     def to_json(self) -> dict[str, Any]:
         """JSON-ready dict of the documented serve format."""
@@ -219,6 +318,8 @@ class HandServe:
         }
         if self.task is not None:
             out["task"] = self.task
+        if not self.limit_scale.is_identity:
+            out["limit_scale"] = self.limit_scale.to_json()
         out.update(self.extra)
         return out
 
@@ -228,7 +329,7 @@ class HandServe:
 
 
 _PARAM_KEYS = {"tau", "velocity", "yaw", "roll", "t_return", "offset"}
-_TOP_KEYS = {"schema", "name", "side", "params", "notes", "task"}
+_TOP_KEYS = {"schema", "name", "side", "params", "notes", "task", "limit_scale"}
 
 
 def serve_from_json(data: Any, *, source: str = "<serve>") -> HandServe:
@@ -288,8 +389,9 @@ def serve_from_json(data: Any, *, source: str = "<serve>") -> HandServe:
     task = data.get("task")
     if task is not None and not isinstance(task, str):
         raise fail("field 'task': must be a string or absent")
+    limit_scale = LimitScale.from_json(data["limit_scale"], source=source) if "limit_scale" in data else LimitScale()
     extra = {k: v for k, v in data.items() if k not in _TOP_KEYS}
-    return HandServe(name=name.strip(), side=side, params=params, notes=notes, task=task, extra=extra)
+    return HandServe(name=name.strip(), side=side, params=params, notes=notes, task=task, extra=extra, limit_scale=limit_scale)
 
 
 def load_serve(path: str | Path) -> HandServe:

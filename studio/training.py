@@ -34,14 +34,14 @@ import math
 import os
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Literal, Sequence
 
 import numpy as np
 
 from studio.errors import InvalidInputError
-from studio.serve import HandServe, TossSide
+from studio.serve import HandServe, LimitScale, TossSide
 
 # Ray >= 2.45 notices a driver started by ``uv run`` (as ``./dev`` does) and starts its
 # workers with ``uv run`` too, packaging the working directory; here that failed ("worker
@@ -91,6 +91,9 @@ class TrainConfig:
     overlap: bool | None = None
     """Suggest the next batch while the current one is evaluated (``optimize_serve``'s
     ``overlap``; ``None``: when a run has 2+ evaluation processes)."""
+    limit_scale: LimitScale = field(default_factory=LimitScale)
+    """Dynamic limit expansion of every run (``optimize_serve``'s ``limit_scale``); a
+    resumed run must have been started with the same scale."""
 
     def __post_init__(self) -> None:
         from studio.reward import task_weights
@@ -154,11 +157,11 @@ def _run_job(side: TossSide, seed: int, cfg: TrainConfig, run_dir: Path, *, work
     res = optimize_serve(
         side=side, task=cfg.task, run_dir=run_dir, seeds=[s for s in cfg.seeds if s.side == side], iterations=cfg.iterations,
         population=cfg.population, tosses=cfg.tosses, seed=seed, workers=workers, resume=(run_dir / "evaluations.jsonl").exists(),
-        on_record=on_record, overlap=cfg.overlap,
+        on_record=on_record, overlap=cfg.overlap, limit_scale=cfg.limit_scale,
     )  # fmt: skip
     if res.best is None:
         return None
-    return HandServe(name=f"{cfg.task} {side} {seed}", side=side, params=res.best.params, task=cfg.task, notes=res.best.notes)
+    return replace(res.best, name=f"{cfg.task} {side} {seed}", task=cfg.task)
 
 
 def _ray_job(side: TossSide, seed: int, cfg: TrainConfig, run_json: str | None, log: bytes, queue: Any, index: int) -> dict[str, Any] | None:

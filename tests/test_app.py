@@ -57,6 +57,28 @@ def test_non_finite_control_is_rejected_not_evaluated(app: StudioApp) -> None:
     assert app.worker.wait_idle(120)
 
 
+def test_joint_limit_controls_set_the_serves_limit_scale(app: StudioApp) -> None:
+    from dataclasses import replace
+
+    from studio.serve import LimitScale
+
+    app._suspend = True
+    app.limit_accel.value = math.nan
+    app._suspend = False
+    before = app.worker.latest_ticket
+    app._changed()
+    assert "Input rejected" in app.message_md.content and "accel & jerk" in app.message_md.content
+    assert app.worker.latest_ticket == before
+    app.load(replace(app.last.serve, limit_scale=LimitScale(velocity=1.2, acceleration=1.5, jerk=1.5)))  # type: ignore[union-attr]
+    assert app.limit_accel.value == pytest.approx(1.5) and app.limit_speed.value == pytest.approx(1.2)
+    assert app.controls().serve.limit_scale == LimitScale(velocity=1.2, acceleration=1.5, jerk=1.5)
+    assert app.worker.wait_idle(120)
+    assert app.last is not None and app.last.serve.limit_scale == LimitScale(velocity=1.2, acceleration=1.5, jerk=1.5)
+    app.load(replace(app.last.serve, limit_scale=LimitScale()))
+    assert app.controls().serve.limit_scale.is_identity
+    assert app.worker.wait_idle(120)
+
+
 def test_corrupt_upload_is_reported(app: StudioApp) -> None:
     class File:
         name = "bad.json"

@@ -51,6 +51,22 @@ def test_optimize_tiny_budget_writes_run_and_best(capsys: pytest.CaptureFixture[
     assert len((run / "evaluations.jsonl").read_text().splitlines()) == 3  # the seed + 2 suggestions
 
 
+def test_limit_scale_option_evaluates_exports_and_optimizes(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    code = main(["evaluate", str(EXAMPLES / "topspin_right.json"), "--json", "--limit-scale", "1.4", "--export", str(tmp_path / "lib")])
+    assert code == 0 and json.loads(capsys.readouterr().out)["legal"] is True
+    (entry,) = ServeLibrary(tmp_path / "lib").entries()
+    assert entry.data["robot"]["limit_scale"] == {"velocity": 1.0, "acceleration": 1.4, "jerk": 1.4}
+    assert main(["evaluate", str(EXAMPLES / "topspin_right.json"), "--limit-scale", "jerk=fast"]) == 2
+    assert "limit scale 'jerk=fast': jerk must be a number" in capsys.readouterr().err
+    run = tmp_path / "run"
+    code = main(["optimize", str(EXAMPLES / "topspin_right.json"), "--iterations", "1", "--population", "2", "--workers", "1", "--run-dir", str(run), "--limit-scale", "acceleration=1.2,jerk=1.3"])
+    capsys.readouterr()
+    assert code in (0, 1)
+    best = json.loads((run / "best_serve.json").read_text())
+    assert best["limit_scale"] == {"velocity": 1.0, "acceleration": 1.2, "jerk": 1.3}
+    assert json.loads((run / "run.json").read_text())["limit_scale"] == best["limit_scale"]
+
+
 def test_train_exports_legal_serves_and_resumes(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     args = ["train", "--task", "topspin_velocity", "--count", "1", "--side", "right", "--library", str(tmp_path / "lib"),
             "--runs", str(tmp_path / "runs"), "--iterations", "1", "--population", "2", "--tosses", "2", "--workers", "1",

@@ -41,6 +41,14 @@ def library(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return folder
 
 
+def test_limits_text() -> None:
+    from studio.dashboard import limits_text
+    from studio.serve import LimitScale
+
+    assert limits_text(LimitScale()) == "1"
+    assert limits_text(LimitScale(velocity=1.1, acceleration=1.5, jerk=1.5)) == "v 1.1, a 1.5, j 1.5"
+
+
 def test_spin_cluster_by_dominant_component() -> None:
     assert spin_cluster(200.0, 20.0) == "topspin"
     assert spin_cluster(-150.0, 30.0, 10.0) == "backspin"
@@ -71,6 +79,7 @@ def test_dashboard_on_a_library_of_three_serves(library: Path) -> None:
     v = np.asarray(entry.data["net"]["v"])
     assert back["speed_h"] == pytest.approx(np.hypot(v[0], v[1])) and back["speed_h"] <= entry.data["net"]["speed"]
     assert back["spin"] == pytest.approx(np.linalg.norm(entry.data["net"]["w"]))
+    assert set(table["limits"]) == {"1"}  # the examples plan with the robot's own limits
     # the first row is shown: 8 joint command lines, ball path views, studio link, download
     assert dash.selected_id == table["id"].iloc[0]
     lines = [r for r in dash.joints.object.renderers if type(r.glyph).__name__ == "Line"]

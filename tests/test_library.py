@@ -107,3 +107,35 @@ def test_serve_without_plan_cannot_be_exported(tmp_path: Path) -> None:
     with pytest.raises(InvalidInputError, match="no motion plan"):
         ServeLibrary(tmp_path).add(ev)
     assert not (tmp_path / INDEX_NAME).exists()
+
+
+def test_export_records_the_limit_scale_and_the_limits_it_needs(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    from studio.robot import load_robot
+    from studio.serve import LimitScale
+
+    context = EvaluationContext.default()
+    scale = LimitScale(velocity=1.1, acceleration=1.5, jerk=1.5)
+    serve = replace(load_serve(EXAMPLE), limit_scale=scale)
+    lib = ServeLibrary(tmp_path / "lib")
+    entry = lib.add(evaluate_serve(serve, context))
+    robot = lib.get(entry.id).data["robot"]
+    base = load_robot().limits
+    assert robot["limit_scale"] == {"velocity": 1.1, "acceleration": 1.5, "jerk": 1.5}
+    np.testing.assert_allclose(robot["limits"]["velocity"], 1.1 * base.velocity)
+    np.testing.assert_allclose(robot["limits"]["acceleration"], 1.5 * base.acceleration)
+    np.testing.assert_allclose(robot["limits"]["jerk"], 1.5 * base.jerk)
+    assert lib.get(entry.id).serve.limit_scale == scale  # back into the studio / a seed with its scale
+    plain = lib.add(evaluate_serve(load_serve(EXAMPLE), context))
+    assert plain.data["robot"]["limit_scale"] == LimitScale().to_json() and plain.serve.limit_scale.is_identity
+    # an index entry without the field (older libraries) plans with the robot's limits
+    doc = json.loads((tmp_path / "lib" / INDEX_NAME).read_text())
+    del doc["serves"][0]["robot"]["limit_scale"]
+    (tmp_path / "lib" / INDEX_NAME).write_text(json.dumps(doc))
+    assert lib.get(entry.id).serve.limit_scale.is_identity
+    # a corrupt scale is rejected with the file, entry and field named
+    doc["serves"][1]["robot"]["limit_scale"] = {"jerk": -1}
+    (tmp_path / "lib" / INDEX_NAME).write_text(json.dumps(doc))
+    with pytest.raises(DataFileError, match=r"index.json: serves\[1\].robot: field 'limit_scale': LimitScale.jerk"):
+        lib.entries()

@@ -362,3 +362,35 @@ def test_resumed_torn_overlapped_batch_knows_its_logged_part(tmp_path: Path, mon
     assert logged_2 <= seen[0]  # the re-suggestion of batch 2's missing part sees its logged part as pending
     genomes = [tuple(r["genome"]) for r in read_log(tmp_path / "t")]
     assert len(genomes) == len(set(genomes)) == 2 + 3 * 4
+
+
+def test_limit_scale_reaches_every_candidate_is_logged_and_kept_on_resume(tmp_path: Path) -> None:
+    from studio.serve import LimitScale
+
+    scales: list[LimitScale] = []
+    fake = FakeEvaluation()
+
+    def evaluate(serve: HandServe, tosses: int, rng: np.random.Generator) -> Outcome:
+        scales.append(serve.limit_scale)
+        return fake(serve, tosses, rng)
+
+    scale = LimitScale.uniform(1.4)
+    res = run(tmp_path, iterations=1, evaluate=evaluate, limit_scale=scale)
+    assert scales and all(s == scale for s in scales)  # seeds, suggestions and the final pick
+    assert json.loads((tmp_path / "run.json").read_text())["limit_scale"] == {"velocity": 1.0, "acceleration": 1.4, "jerk": 1.4}
+    assert res.best is not None and res.best.limit_scale == scale
+    # resumed without a scale: the run's own; with another scale: refused by name
+    scales.clear()
+    res2 = run(tmp_path, iterations=2, evaluate=evaluate, resume=True)
+    assert scales and all(s == scale for s in scales) and res2.best is not None and res2.best.limit_scale == scale
+    with pytest.raises(InvalidInputError, match="limit_scale"):
+        run(tmp_path, iterations=3, evaluate=evaluate, resume=True, limit_scale=LimitScale())
+
+
+def test_runs_logged_before_limit_scale_resume_with_the_robots_limits(tmp_path: Path) -> None:
+    run(tmp_path, iterations=1)
+    meta = json.loads((tmp_path / "run.json").read_text())
+    del meta["limit_scale"]
+    (tmp_path / "run.json").write_text(json.dumps(meta))
+    res = run(tmp_path, iterations=2, resume=True)
+    assert res.best is not None and res.best.limit_scale.is_identity

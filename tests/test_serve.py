@@ -12,6 +12,7 @@ from studio.errors import DataFileError, InvalidInputError
 from studio.serve import (
     GenomeBounds,
     HandServe,
+    LimitScale,
     ServeParams,
     load_serve,
     racket_normal,
@@ -90,6 +91,10 @@ def test_serve_file_round_trip(tmp_path: Path) -> None:
         (lambda d: d["params"].__setitem__("spin", 3), "params"),
         (lambda d: d["params"].pop("roll"), "params.roll"),
         (lambda d: d.__setitem__("schema", "other@9"), "schema"),
+        (lambda d: d.__setitem__("limit_scale", 1.3), "limit_scale"),
+        (lambda d: d.__setitem__("limit_scale", {"jerk": math.nan}), "limit_scale': LimitScale.jerk"),
+        (lambda d: d.__setitem__("limit_scale", {"acceleration": 40}), "limit_scale': LimitScale.acceleration"),
+        (lambda d: d.__setitem__("limit_scale", {"torque": 1.2}), "limit_scale': unknown keys"),
     ],
 )
 def test_bad_serve_json_names_field(mutate, field: str) -> None:  # type: ignore[no-untyped-def]
@@ -111,3 +116,35 @@ def test_corrupt_file_rejected(tmp_path: Path) -> None:
         load_serve(path)
     with pytest.raises(DataFileError, match="cannot read"):
         load_serve(tmp_path / "missing.json")
+
+
+def test_limit_scale_in_serve_files() -> None:
+    """A serve carries its dynamic limit expansion; files without it plan with the robot's limits."""
+    doc = {"name": "x", "side": "right", "params": {"tau": 0.8, "velocity": [3, 0, 1], "yaw": 1.57, "roll": 0.0}}
+    plain = serve_from_json(doc)
+    assert plain.limit_scale == LimitScale() and plain.limit_scale.is_identity
+    assert "limit_scale" not in plain.to_json()  # files of the robot's own limits stay as they were
+    fast = serve_from_json({**doc, "limit_scale": {"acceleration": 1.5, "jerk": 1.25}})
+    assert fast.limit_scale == LimitScale(velocity=1.0, acceleration=1.5, jerk=1.25)
+    assert serve_from_json(fast.to_json()) == fast
+    assert fast.to_json()["limit_scale"] == {"velocity": 1.0, "acceleration": 1.5, "jerk": 1.25}
+
+
+def test_limit_scale_parse_apply_and_reject() -> None:
+    from studio.robot import load_robot
+
+    assert LimitScale.parse("1.3") == LimitScale(acceleration=1.3, jerk=1.3)  # the paper's expansion
+    assert LimitScale.parse(" velocity=1.1, jerk=2 ") == LimitScale(velocity=1.1, jerk=2.0)
+    for bad, what in (("fast", "part 'fast'"), ("jerk=x", "jerk must be a number"), ("torque=2", "torque"), ("nan", "acceleration"), ("0", r"\[0.25, 4.0\]")):
+        with pytest.raises(InvalidInputError, match=what):
+            LimitScale.parse(bad)
+    with pytest.raises(InvalidInputError, match="LimitScale.velocity"):
+        LimitScale(velocity=True)  # type: ignore[arg-type]
+    base = load_robot().limits
+    out = LimitScale(velocity=1.2, acceleration=1.5, jerk=2.0).apply(base)
+    np.testing.assert_allclose(out.velocity, 1.2 * base.velocity)
+    np.testing.assert_allclose(out.acceleration, 1.5 * base.acceleration)
+    np.testing.assert_allclose(out.jerk, 2.0 * base.jerk)
+    np.testing.assert_array_equal(out.lower, base.lower)
+    np.testing.assert_array_equal(out.upper, base.upper)
+    assert LimitScale().apply(base) is base
