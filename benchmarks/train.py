@@ -49,7 +49,7 @@ def run_hebo(args: argparse.Namespace, config: HeboConfig, iterations: int, run_
     res = optimize_serve(
         side=args.side, task=args.task, run_dir=run_dir, seeds=seeds, iterations=iterations, population=args.population,
         tosses=args.tosses, seed=args.seed, workers=args.workers, progress=progress, config=config, overlap=overlap,
-        limit_scale=LimitScale.parse(args.limit_scale),
+        limit_scale=args.scale,
     )  # fmt: skip
     return trace, res
 
@@ -64,7 +64,7 @@ def run_cma(args: argparse.Namespace, evaluations: int) -> tuple[Trace, float]:
     trace: Trace = []
     best = -np.inf
     done = 0
-    with EvaluatorPool(side=args.side, task=args.task, workers=args.workers) as pool:
+    with EvaluatorPool(side=args.side, task=args.task, workers=args.workers, limit_scale=args.scale) as pool:
         while done < evaluations:
             Z = np.clip(np.array(es.ask()), 0.0, 1.0)
             out = [o for o, _ in pool.map(low + Z * (high - low), tosses=args.tosses, rng_seeds=range(done, done + len(Z)))]
@@ -103,9 +103,10 @@ def main() -> None:
     ap.add_argument("--limit-scale", default="1", help="dynamic limit expansion of the runs (serve-studio optimize --limit-scale): 1.5 = acceleration and jerk limits x1.5")
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args()
+    args.scale = LimitScale.parse(args.limit_scale)
 
     cfg = HeboConfig()
-    out: dict[str, object] = {"task": args.task, "side": args.side, "workers": args.workers, "tosses": args.tosses, "limit_scale": LimitScale.parse(args.limit_scale).to_json(), "config": cfg.to_json()}
+    out: dict[str, object] = {"task": args.task, "side": args.side, "workers": args.workers, "tosses": args.tosses, "limit_scale": args.scale.to_json(), "config": cfg.to_json()}
     with tempfile.TemporaryDirectory() as tmp:
         if not args.skip_main:
             trace, res = run_hebo(args, cfg, args.iterations, Path(tmp) / "main", overlap=not args.sequential)
@@ -129,7 +130,7 @@ def main() -> None:
             if res.best is not None:  # what the chosen serve does on the mean toss (after the timing)
                 from studio.evaluate import EvaluationContext, evaluate_serve
 
-                ev = evaluate_serve(res.best, EvaluationContext.for_training(), task=args.task)
+                ev = evaluate_serve(res.best, EvaluationContext.default(), task=args.task)  # as train exports
                 sb = ev.metrics.second_bounce if ev.metrics is not None else None
                 if sb is not None:
                     rows.append(("final serve, mean toss: ball at the second bounce", f"v_x {sb['v'][0]:+.2f} m/s, |v| {float(np.linalg.norm(sb['v'])):.2f} m/s, top/back {sb['topspin']:+.0f} rad/s, side {sb['sidespin']:+.0f} rad/s ({ev.status})"))

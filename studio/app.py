@@ -25,7 +25,7 @@ from studio.errors import InvalidInputError, StudioError
 from studio.evaluate import Evaluation, EvaluationContext, evaluate_serve, report_markdown, scene_frame
 from studio.reward import TASKS
 from studio.scene import StudioScene
-from studio.serve import GenomeBounds, HandServe, LimitScale, ServeParams, load_serve, save_serve, serve_from_json
+from studio.serve import LIMIT_SCALE_RANGE, GenomeBounds, HandServe, LimitScale, ServeParams, load_serve, save_serve, serve_from_json
 from studio.worker import LatestWorker, WorkResult
 
 EXAMPLES_DIR = Path(__file__).resolve().parent.parent / "examples" / "serves"
@@ -138,8 +138,10 @@ class StudioApp:
                 self.dpy = gui.add_slider("dp_y", min=-b.offset, max=b.offset, step=0.002, initial_value=0.0)
                 self.dpz = gui.add_slider("dp_z", min=-b.offset, max=b.offset, step=0.002, initial_value=0.0)
             with gui.add_folder("Joint limits [x robot's]", expand_by_default=False):
-                self.limit_accel = gui.add_slider("accel & jerk", min=0.5, max=2.0, step=0.05, initial_value=1.0)
-                self.limit_speed = gui.add_slider("speed", min=0.5, max=2.0, step=0.05, initial_value=1.0)
+                lo, hi = LIMIT_SCALE_RANGE
+                self.limit_speed = gui.add_slider("speed", min=lo, max=hi, step=0.05, initial_value=1.0)
+                self.limit_accel = gui.add_slider("acceleration", min=lo, max=hi, step=0.05, initial_value=1.0)
+                self.limit_jerk = gui.add_slider("jerk", min=lo, max=hi, step=0.05, initial_value=1.0)
             self.mujoco = gui.add_checkbox("MuJoCo rollout", initial_value=False)
             with gui.add_folder("Files"):
                 self.save_button = gui.add_button("Save as seed")
@@ -179,7 +181,7 @@ class StudioApp:
             self.speed = gui.add_dropdown("speed", options=["0.1x", "0.25x", "0.5x", "1x"], initial_value="0.25x")
         self.message_md = gui.add_markdown("")
 
-        controls = (self.side, self.toss, self.task, self.tau, self.t_return, self.vx, self.vy, self.vz, self.yaw, self.roll, self.dpx, self.dpy, self.dpz, self.limit_accel, self.limit_speed, self.mujoco)
+        controls = (self.side, self.toss, self.task, self.tau, self.t_return, self.vx, self.vy, self.vz, self.yaw, self.roll, self.dpx, self.dpy, self.dpz, self.limit_speed, self.limit_accel, self.limit_jerk, self.mujoco)
         for handle in controls:
             handle.on_update(lambda _event: self._changed())
         self.side.on_update(lambda _event: self._refresh_toss_options())
@@ -214,8 +216,9 @@ class StudioApp:
             "dp_x": self.dpx.value,
             "dp_y": self.dpy.value,
             "dp_z": self.dpz.value,
-            "accel & jerk": self.limit_accel.value,
-            "speed": self.limit_speed.value,
+            "speed limit": self.limit_speed.value,
+            "acceleration limit": self.limit_accel.value,
+            "jerk limit": self.limit_jerk.value,
         }
         for key, value in values.items():
             if not isinstance(value, (int, float)) or not math.isfinite(value):
@@ -229,7 +232,7 @@ class StudioApp:
             offset=(float(values["dp_x"]), float(values["dp_y"]), float(values["dp_z"])),
         )
         try:
-            scale = LimitScale(velocity=float(values["speed"]), acceleration=float(values["accel & jerk"]), jerk=float(values["accel & jerk"]))
+            scale = LimitScale(velocity=float(values["speed limit"]), acceleration=float(values["acceleration limit"]), jerk=float(values["jerk limit"]))
         except InvalidInputError as err:
             raise InvalidInputError(f"joint limits control: {err}") from None
         serve = HandServe(name=self.name.value.strip() or "my serve", side=self.side.value, params=params, task=self.task.value, limit_scale=scale)
@@ -251,11 +254,8 @@ class StudioApp:
                 handle.value = float(np.clip(value, handle.min, handle.max))
             self.yaw.value = float(np.clip(math.degrees(p.yaw), self.yaw.min, self.yaw.max))
             self.roll.value = float(np.clip(math.degrees(p.roll), self.roll.min, self.roll.max))
-            scale = serve.limit_scale
-            if scale.acceleration != scale.jerk:
-                self._message(f"Serve `{serve.name}` expands acceleration x{scale.acceleration:g} and jerk x{scale.jerk:g}; the studio sets both to x{scale.acceleration:g}.")
-            self.limit_accel.value = float(np.clip(scale.acceleration, self.limit_accel.min, self.limit_accel.max))
-            self.limit_speed.value = float(np.clip(scale.velocity, self.limit_speed.min, self.limit_speed.max))
+            scale = serve.limit_scale  # the sliders span LIMIT_SCALE_RANGE: every valid scale fits
+            self.limit_speed.value, self.limit_accel.value, self.limit_jerk.value = scale.velocity, scale.acceleration, scale.jerk
             self._refresh_toss_options()
         finally:
             self._suspend = False

@@ -70,11 +70,17 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     from studio.evaluate import EvaluationContext, evaluate_serve
     from dataclasses import replace
 
+    from studio.errors import InvalidInputError
     from studio.optimizer import optimize_serve
     from studio.serve import LimitScale, load_serve
 
     seeds = [load_serve(p) for p in args.seeds]
     limit_scale = LimitScale.parse(args.limit_scale) if args.limit_scale is not None else None
+    if limit_scale is None and not args.resume and seeds:  # the seeds' own scale
+        scales = {s.limit_scale for s in seeds}
+        if len(scales) > 1:
+            raise InvalidInputError(f"the seed serves plan with different limit scales {[s.to_json() for s in scales]}: choose one with --limit-scale")
+        limit_scale = scales.pop()
     run_dir = Path(args.run_dir or f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{args.side}-{args.task}")
     start = time.perf_counter()
 
@@ -135,7 +141,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     cfg = TrainConfig(
         task=args.task, count=args.count, side=args.side, iterations=args.iterations, population=args.population, tosses=args.tosses,
         seed=args.seed, workers=args.workers, seeds=tuple(load_serve(p) for p in args.seeds), runs_dir=Path(args.runs or f"runs/train-{args.task}"),
-        overlap=False if args.sequential else None, limit_scale=LimitScale.parse(args.limit_scale) if args.limit_scale else LimitScale(),
+        overlap=False if args.sequential else None, limit_scale=LimitScale.parse(args.limit_scale) if args.limit_scale is not None else LimitScale(),
     )  # fmt: skip
 
     def progress(r: TrainedServe, total: int) -> None:
@@ -342,7 +348,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--resume", action="store_true", help="continue the run in --run-dir without repeating evaluations")
     p.add_argument("--export", default=None, metavar="DIR", help="export the chosen serve to this serve library")
     p.add_argument("--sequential", action="store_true", help="suggest each batch after the previous one is evaluated (default with 2+ workers: the next batch is suggested while the workers evaluate)")
-    p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default 1; on --resume: the run's own)")
+    p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default: the seed serves' own scale, else 1; on --resume: the run's own)")
     handlers["optimize"] = _cmd_optimize
 
     p = sub.add_parser("train", help="train COUNT serves for a task (one HEBO run each) into a library, print a Table II-like summary")

@@ -49,6 +49,9 @@ from studio.toss import TossModel, load_default_toss_model
 
 Status = Literal["legal", "illegal", "planner_failed", "collision"]
 
+MAX_SCALED_PLANNERS = 8
+"""How many planners with expanded limits an evaluation context keeps (oldest dropped)."""
+
 SWITCH_DELAY = 0.06
 """Time after the ball's lift at which the strike planner takes over from the toss [s]:
 the ball clears the cup rim ~51 ms after release, so the strike may move the cup
@@ -139,6 +142,9 @@ class EvaluationContext:
             return self.planner
         if scale not in self._planners:
             from studio.planner import PlannerOptions, StrikePlanner
+
+            while len(self._planners) >= MAX_SCALED_PLANNERS:  # a studio user sweeping the sliders
+                self._planners.pop(next(iter(self._planners)))
 
             options = self.planner_options if self.planner_options is not None else PlannerOptions()
             base = options.limits if options.limits is not None else self.robot.limits

@@ -29,7 +29,7 @@ import os
 import re
 import tempfile
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -101,11 +101,8 @@ class LibraryEntry:
     def serve(self) -> HandServe:
         """The serve parameters as a hand-designed serve (for the studio or as a seed)."""
         d = self.data
-        doc = {"name": d["name"], "side": d["side"], "params": d["params"], "task": d.get("task")}
-        scale = self.limit_scale
-        if not scale.is_identity:
-            doc["limit_scale"] = scale.to_json()
-        return serve_from_json(doc, source=f"{self.folder / INDEX_NAME}: serve {self.id}")
+        serve = serve_from_json({"name": d["name"], "side": d["side"], "params": d["params"], "task": d.get("task")}, source=f"{self.folder / INDEX_NAME}: serve {self.id}")
+        return replace(serve, limit_scale=self.limit_scale)
 
     @property
     def limit_scale(self) -> LimitScale:

@@ -42,7 +42,7 @@ import os
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
@@ -67,6 +67,7 @@ __all__ = [
     "bounds_for_toss",
     "optimize_serve",
     "RUN_SCHEMA",
+    "read_run_meta",
 ]
 
 RUN_SCHEMA = "serve-studio/optimization-run@1"
@@ -430,15 +431,15 @@ class RunHistory:
         return np.maximum.accumulate(r) if len(r) else r
 
 
-def load_run_history(run_dir: str | Path) -> RunHistory:
-    """Read an optimization run folder (as written by :func:`optimize_serve`).
+def read_run_meta(run_dir: str | Path) -> dict[str, Any]:
+    """``run_dir/run.json`` (the run's configuration) as a dict, its ``limit_scale`` filled
+    in for runs logged before dynamic limit expansion (the robot's own limits).
 
     Raises:
-        DataFileError: ``run.json`` or ``evaluations.jsonl`` missing or malformed (file and
-            line named). A torn last line (interrupted run) is ignored, not an error.
+        DataFileError: the file is missing, not JSON, not a run file, or its
+            ``limit_scale`` is malformed (the file and the field named).
     """
-    run_dir = Path(run_dir)
-    meta_path = run_dir / "run.json"
+    meta_path = Path(run_dir) / "run.json"
     if not meta_path.is_file():
         raise DataFileError(str(meta_path), "missing: not an optimization run folder")
     try:
@@ -447,6 +448,19 @@ def load_run_history(run_dir: str | Path) -> RunHistory:
         raise DataFileError(str(meta_path), f"not readable JSON ({exc})") from exc
     if not isinstance(meta, dict) or meta.get("schema") != RUN_SCHEMA:
         raise DataFileError(str(meta_path), f"schema must be {RUN_SCHEMA!r}")
+    meta["limit_scale"] = LimitScale.from_json(meta.get("limit_scale", {}), source=str(meta_path)).to_json()
+    return meta
+
+
+def load_run_history(run_dir: str | Path) -> RunHistory:
+    """Read an optimization run folder (as written by :func:`optimize_serve`).
+
+    Raises:
+        DataFileError: ``run.json`` or ``evaluations.jsonl`` missing or malformed (file and
+            line named). A torn last line (interrupted run) is ignored, not an error.
+    """
+    run_dir = Path(run_dir)
+    meta = read_run_meta(run_dir)
     log_path = run_dir / "evaluations.jsonl"
     records: list[EvaluationRecord] = []
     if log_path.is_file():
@@ -555,8 +569,9 @@ def optimize_serve(
             evaluation cannot run beside the suggestion); on resume the run's own loop.
         limit_scale: the paper's dynamic limit expansion (:class:`~studio.serve.LimitScale`):
             every candidate, the seeds included, is planned with the robot's derivative
-            limits times these factors, and the chosen serve carries them. ``None``: the
-            robot's own limits, or on resume the run's own scale.
+            limits times these factors, and the chosen serve carries them (a seed's own
+            scale is replaced by the run's). ``None``: the robot's own limits, or on resume
+            the run's own scale.
     """
     overlap_given, config_given = overlap is not None, config is not None
     if overlap is None:
@@ -571,13 +586,9 @@ def optimize_serve(
     for s in seeds:
         if s.side != side:
             raise InvalidInputError(f"seed serve {s.name!r} is for the {s.side} toss, the run is for the {side} toss")
-    if limit_scale is None:
-        limit_scale = LimitScale()
-        if resume and (Path(run_dir) / "run.json").exists():  # a resumed run keeps its own scale
-            try:
-                limit_scale = LimitScale.from_json(json.loads((Path(run_dir) / "run.json").read_text()).get("limit_scale", {}), source=str(Path(run_dir) / "run.json"))
-            except ValueError:
-                pass  # unreadable run.json: reported by the resume check below
+    old = read_run_meta(run_dir) if resume and (Path(run_dir) / "run.json").exists() else None
+    if limit_scale is None:  # a resumed run keeps its own scale
+        limit_scale = LimitScale.from_json(old["limit_scale"]) if old is not None else LimitScale()
     # the workers start first and initialize while this process loads the toss model and HEBO
     with EvaluatorPool(side=side, task=task, workers=workers, min_legal_fraction=min_legal_fraction, evaluate=evaluate, context=context, ipopt_fallback=ipopt_fallback, limit_scale=limit_scale) as pool:
         if bounds is None:
@@ -612,15 +623,13 @@ def optimize_serve(
             "ipopt_fallback": bool(ipopt_fallback),
             "overlap": bool(overlap),
             "limit_scale": limit_scale.to_json(),
-            "seeds": [s.to_json() for s in seeds],
+            "seeds": [replace(s, limit_scale=limit_scale).to_json() for s in seeds],  # planned at the run's scale
         }
         log_path = run_dir / "evaluations.jsonl"
         records: list[EvaluationRecord] = []
-        if resume and (run_dir / "run.json").exists():
-            old = json.loads((run_dir / "run.json").read_text())
+        if old is not None:
             old.setdefault("ipopt_fallback", False)  # runs logged before these options existed
             old.setdefault("overlap", False)
-            old.setdefault("limit_scale", LimitScale().to_json())  # runs logged before dynamic limit expansion
             if not overlap_given:  # a resumed run keeps its own loop unless the caller chose one
                 overlap = bool(old["overlap"])
                 run_json["overlap"] = overlap

@@ -215,9 +215,14 @@ class LimitScale:
         lo, hi = LIMIT_SCALE_RANGE
         for name in ("velocity", "acceleration", "jerk"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not lo <= value <= hi:
+            try:
+                ok = not isinstance(value, bool) and isinstance(value, (int, float)) and lo <= float(value) <= hi
+            except OverflowError:  # an integer beyond float range
+                ok = False
+            if not ok:
                 raise InvalidInputError(f"LimitScale.{name} must be a number in [{lo}, {hi}], got {value!r}")
-            object.__setattr__(self, name, float(value))
+            # rounded to 1e-6: slider steps (1.1500000000000001) give the same scale, file and planner
+            object.__setattr__(self, name, round(float(value), 6))
 
     @classmethod
     def uniform(cls, factor: float) -> LimitScale:
@@ -263,6 +268,8 @@ class LimitScale:
             key = key.strip()
             if not sep or key not in ("velocity", "acceleration", "jerk"):
                 raise InvalidInputError(f"limit scale {text!r}: expected a number or velocity=..,acceleration=..,jerk=.. (got part {part!r})")
+            if key in values:
+                raise InvalidInputError(f"limit scale {text!r}: {key} given twice")
             try:
                 values[key] = float(value)
             except ValueError:

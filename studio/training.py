@@ -199,7 +199,19 @@ def _finish(index: int, run_dir: Path, seed: int, best: HandServe | None, cfg: T
     return TrainedServe(index, run_dir, bool(ev.legal), float(ev.reward.total), row, entry_id, seconds, "" if ev.legal else ev.reason)
 
 
-def _already(index: int, run_dir: Path) -> TrainedServe | None:
+def _check_scale(run_dir: Path, cfg: TrainConfig) -> None:
+    """Refuse a run folder that was trained with another limit scale than ``cfg``'s."""
+    from studio.optimizer import read_run_meta
+
+    if not (run_dir / "run.json").exists():
+        return
+    scale = LimitScale.from_json(read_run_meta(run_dir)["limit_scale"])
+    if scale != cfg.limit_scale:
+        raise InvalidInputError(f"{run_dir} was trained with limit_scale {scale.to_json()}, this call asks for {cfg.limit_scale.to_json()}: use another --runs folder")
+
+
+def _already(index: int, run_dir: Path, cfg: TrainConfig) -> TrainedServe | None:
+    _check_scale(run_dir, cfg)
     done = run_dir / "exported.json"
     if not done.exists():
         return None
@@ -213,7 +225,7 @@ def finished_runs(cfg: TrainConfig) -> list[TrainedServe]:
     order, without training anything (for a report while or after training)."""
     out = []
     for i, _side, _seed, run_dir in cfg.jobs():
-        done = _already(i, run_dir)
+        done = _already(i, run_dir, cfg)
         if done is not None:
             out.append(done)
     return out

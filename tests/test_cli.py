@@ -65,6 +65,12 @@ def test_limit_scale_option_evaluates_exports_and_optimizes(capsys: pytest.Captu
     best = json.loads((run / "best_serve.json").read_text())
     assert best["limit_scale"] == {"velocity": 1.0, "acceleration": 1.2, "jerk": 1.3}
     assert json.loads((run / "run.json").read_text())["limit_scale"] == best["limit_scale"]
+    # without --limit-scale an optimization takes its seed serves' own scale
+    seed = tmp_path / "seed.json"
+    seed.write_text(json.dumps({**json.loads((EXAMPLES / "topspin_right.json").read_text()), "limit_scale": {"jerk": 1.6}}))
+    code = main(["optimize", str(seed), "--iterations", "0", "--workers", "1", "--run-dir", str(tmp_path / "run2")])
+    capsys.readouterr()
+    assert json.loads((tmp_path / "run2" / "run.json").read_text())["limit_scale"] == {"velocity": 1.0, "acceleration": 1.0, "jerk": 1.6}
 
 
 def test_train_exports_legal_serves_and_resumes(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:

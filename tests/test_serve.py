@@ -138,8 +138,13 @@ def test_limit_scale_parse_apply_and_reject() -> None:
     for bad, what in (("fast", "part 'fast'"), ("jerk=x", "jerk must be a number"), ("torque=2", "torque"), ("nan", "acceleration"), ("0", r"\[0.25, 4.0\]")):
         with pytest.raises(InvalidInputError, match=what):
             LimitScale.parse(bad)
+    with pytest.raises(InvalidInputError, match="jerk given twice"):
+        LimitScale.parse("jerk=1.2,jerk=2")
     with pytest.raises(InvalidInputError, match="LimitScale.velocity"):
         LimitScale(velocity=True)  # type: ignore[arg-type]
+    with pytest.raises(InvalidInputError, match="LimitScale.jerk"):
+        LimitScale(jerk=10**400)  # beyond float range: an error, not an OverflowError
+    assert LimitScale(acceleration=1.1500000000000001) == LimitScale(acceleration=1.15)  # slider steps
     base = load_robot().limits
     out = LimitScale(velocity=1.2, acceleration=1.5, jerk=2.0).apply(base)
     np.testing.assert_allclose(out.velocity, 1.2 * base.velocity)

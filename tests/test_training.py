@@ -83,3 +83,23 @@ def test_training_on_ray_streams_records_resumes_and_exports(tmp_path: Path) -> 
     finally:
         ray.shutdown()
 
+
+
+def test_runs_folder_of_another_limit_scale_is_refused(tmp_path: Path) -> None:
+    from studio.serve import LimitScale
+    from studio.training import finished_runs
+
+    cfg = TrainConfig(task="backspin", count=1, side="right", runs_dir=tmp_path)
+    (_, _, _, run_dir) = cfg.jobs()[0]
+    run_dir.mkdir(parents=True)
+    from studio.optimizer import RUN_SCHEMA
+
+    (run_dir / "run.json").write_text(json.dumps({"schema": RUN_SCHEMA, "limit_scale": {"acceleration": 1.5, "jerk": 1.5}}))
+    (run_dir / "exported.json").write_text(json.dumps({"id": None, "legal": False, "reward": -3.0, "row": {}}))
+    with pytest.raises(InvalidInputError, match="trained with limit_scale .*'acceleration': 1.5.*use another --runs folder"):
+        finished_runs(cfg)  # not counted as trained at the robot's limits
+    same = TrainConfig(task="backspin", count=1, side="right", runs_dir=tmp_path, limit_scale=LimitScale.uniform(1.5))
+    assert len(finished_runs(same)) == 1
+    (run_dir / "run.json").write_text("[1, 2]")
+    with pytest.raises(InvalidInputError, match="run.json: schema must be"):
+        finished_runs(same)
