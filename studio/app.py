@@ -93,6 +93,7 @@ class StudioApp:
         self._playing = False
         self._bounds = GenomeBounds()
         self._stop_event = threading.Event()
+        self._match_serve: str | None = None  # library id of the robot's current match serve
         self._optimizing = False
         self.runs_dir = serves_dir.parent / "runs"
         self.worker: LatestWorker[Controls, Evaluation] = LatestWorker(self._compute, self._publish, name="studio-evaluator")
@@ -175,6 +176,19 @@ class StudioApp:
                 title="convergence",
                 aspect=1.6,
             )
+        with tabs.add_tab("Match"):
+            gui.add_markdown(
+                "Serve a match from the library: the next serve follows the paper's strategy (the least-used "
+                "legal serve of another spin cluster than the previous one); record each point to the "
+                "library's match log (`matches.jsonl`), which keeps the usage counters and the statistics."
+            )
+            self.match_next = gui.add_button("Next serve")
+            self.match_play = gui.add_checkbox("play it", initial_value=True)
+            self.match_opponent = gui.add_text("opponent", initial_value="")
+            self.match_robot = gui.add_button_group("robot served", options=["won", "ace", "lost"])
+            self.match_receive = gui.add_button_group("opponent served", options=["robot won", "robot lost"])
+            self.match_md = gui.add_markdown("_no serve selected yet_")
+            self.match_stats_md = gui.add_markdown("")
         with gui.add_folder("Playback"):
             self.play = gui.add_button("Play")
             self.time = gui.add_slider("time [s]", min=0.0, max=2.5, step=0.005, initial_value=0.0)
@@ -194,9 +208,13 @@ class StudioApp:
         self.play.on_click(lambda _event: self._toggle_play())
         self.opt_start.on_click(lambda _event: self._start_optimization())
         self.opt_stop.on_click(lambda _event: self._stop_event.set())
+        self.match_next.on_click(lambda _event: self.next_match_serve())
+        self.match_robot.on_click(lambda event: self.record_match_point("robot", event.target.value))
+        self.match_receive.on_click(lambda event: self.record_match_point("opponent", event.target.value))
         self.time.on_update(lambda _event: None if self._playing else self.scene.show_time(self.time.value))
         self._refresh_serve_files()
         self._refresh_library()
+        self.refresh_match_stats()
 
     # -- controls <-> serve -----------------------------------------------------------
 
@@ -386,6 +404,12 @@ class StudioApp:
         except StudioError as err:
             self._message(f"**Cannot open library serve** `{req.id}`: {err}")
             return False
+        self._show_library_entry(entry)
+        self._message(f"Opened library serve `{entry.id}` ({entry.data['name']}) from the dashboard.")
+        return True
+
+    def _show_library_entry(self, entry: Any) -> None:
+        """Load a library entry into the controls and select it in the "Library serve" list."""
         self._refresh_library()
         label = next((k for k, v in self._library_ids.items() if v == entry.id), None)
         self._suspend = True
@@ -395,8 +419,6 @@ class StudioApp:
         finally:
             self._suspend = False
         self.load(entry.serve)
-        self._message(f"Opened library serve `{entry.id}` ({entry.data['name']}) from the dashboard.")
-        return True
 
     def _open_request_loop(self) -> None:
         while True:
@@ -546,6 +568,61 @@ class StudioApp:
             self._optimizing = False
             self.opt_start.disabled = False
             self.opt_stop.disabled = True
+
+    # -- match ------------------------------------------------------------------------
+
+    def next_match_serve(self) -> None:
+        """Select the robot's next serve (:func:`studio.match.next_serve`), load it and play it."""
+        from studio.library import ServeLibrary
+        from studio.match import next_serve
+        from studio.selection import serve_cluster, usage_count
+
+        try:
+            entry = next_serve(ServeLibrary(self.library_dir), self._match_serve)
+        except StudioError as err:
+            self.match_md.content = f"**No serve:** {err}"
+            return
+        previous = self._match_serve
+        self._match_serve = entry.id
+        self._show_library_entry(entry)
+        self.match_md.content = (
+            f"**Serve `{entry.data['name']}`** ({entry.id}): cluster {serve_cluster(entry)}, used {usage_count(entry)} times before"
+            + (f"; previous `{previous}`" if previous else "")
+            + ".  \nRecord the point when it is over."
+        )
+        if self.match_play.value and not self._playing:
+            self.time.value = self.time.min
+            self._toggle_play()
+
+    def record_match_point(self, server: str, outcome: str) -> None:
+        """Record a point in the library's match log (:func:`studio.match.record_point`):
+        ``server`` "robot" with outcome won/ace/lost of the current match serve, or
+        "opponent" with robot won/robot lost."""
+        from studio.library import ServeLibrary
+        from studio.match import record_point
+
+        won = outcome in ("won", "ace", "robot won")
+        try:
+            points = record_point(
+                ServeLibrary(self.library_dir), server=server, winner="robot" if won else "opponent",
+                serve=self._match_serve if server == "robot" else None, ace=outcome == "ace", opponent=self.match_opponent.value.strip(),
+            )  # fmt: skip
+        except StudioError as err:
+            self.match_md.content = f"**Point not recorded:** {err}" + (" Press *Next serve* first." if server == "robot" and self._match_serve is None else "")
+            return
+        self.match_md.content = f"Point {len(points)} recorded: {server} served, {'robot' if won else 'opponent'} won{' (ace)' if outcome == 'ace' else ''}."
+        self.refresh_match_stats()
+
+    def refresh_match_stats(self) -> None:
+        """Show the Table I statistics and the per-serve records of the library's match log."""
+        from studio.library import ServeLibrary
+        from studio.match import MATCH_LOG, load_points, stats_report
+
+        lib = ServeLibrary(self.library_dir)
+        try:
+            self.match_stats_md.content = stats_report(lib.entries(), load_points(lib.folder / MATCH_LOG), compact=True)
+        except StudioError as err:
+            self.match_stats_md.content = f"**Match log unreadable:** {err}"
 
     # -- playback ---------------------------------------------------------------------
 

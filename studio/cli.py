@@ -247,35 +247,25 @@ def _library_validate(args: argparse.Namespace) -> int:
 
 def _library_select(args: argparse.Namespace) -> int:
     from studio.library import ServeLibrary
-    from studio.selection import select_next, serve_cluster, usage_count
+    from studio.match import next_serve
+    from studio.selection import serve_cluster, usage_count
 
-    entry = select_next(ServeLibrary(args.dir).entries(), args.previous)
+    entry = next_serve(ServeLibrary(args.dir), args.previous)
     print(f"{entry.id}\t{entry.data['name']}\t{serve_cluster(entry)}\tused {usage_count(entry)}")
     return 0
 
 
 def _library_record(args: argparse.Namespace) -> int:
-    from datetime import UTC, datetime
-
     from studio.errors import InvalidInputError
     from studio.library import ServeLibrary
-    from studio.match import MATCH_LOG, Point, append_point, load_points, sync_usage
+    from studio.match import record_point
 
-    lib = ServeLibrary(args.dir)
-    entries = lib.entries()
-    if args.server == "robot":
-        if args.serve is None:
-            raise InvalidInputError("--serve ID is required when the robot serves")
-        if args.serve not in {e.id for e in entries}:
-            raise InvalidInputError(f"serve {args.serve!r} not found in library {args.dir}")
-    elif args.serve is not None:
+    if args.server == "robot" and args.serve is None:  # the flags named (record_point checks the same)
+        raise InvalidInputError("--serve ID is required when the robot serves")
+    if args.server == "opponent" and args.serve is not None:
         raise InvalidInputError("--serve is only for robot serves (--server robot)")
-    log = lib.folder / MATCH_LOG
-    points = load_points(log)  # refuse to append to a corrupt log
-    point = Point(time=datetime.now(UTC).isoformat(timespec="seconds"), server=args.server, serve=args.serve, winner=args.winner, ace=args.ace, opponent=args.opponent)
-    append_point(log, point)
-    sync_usage(lib, points + [point])
-    print(f"recorded point {len(points) + 1}: server {args.server}, serve {args.serve or '-'}, winner {args.winner}{', ace' if args.ace else ''}")
+    points = record_point(ServeLibrary(args.dir), server=args.server, winner=args.winner, serve=args.serve, ace=args.ace, opponent=args.opponent)
+    print(f"recorded point {len(points)}: server {args.server}, serve {args.serve or '-'}, winner {args.winner}{', ace' if args.ace else ''}")
     return 0
 
 
@@ -400,7 +390,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     q.set_defaults(library_handler=_library_validate)
     q = lsub.add_parser("select", help="the next serve: least used, from a spin cluster other than the previous serve's")
     q.add_argument("dir", help="serve library folder")
-    q.add_argument("--previous", default=None, metavar="ID", help="id of the serve executed last")
+    q.add_argument("--previous", default=None, metavar="ID", help="id of the serve executed last (default: the robot's last serve in the match log)")
     q.set_defaults(library_handler=_library_select)
     q = lsub.add_parser("record", help="append a point to DIR/matches.jsonl and update the usage counters")
     q.add_argument("dir", help="serve library folder")

@@ -32,7 +32,7 @@ import os
 import shutil
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -174,6 +174,72 @@ def append_point(path: str | Path, point: Point) -> None:
         fh.write(line)
         fh.flush()
         os.fsync(fh.fileno())
+
+
+def record_point(
+    library: ServeLibrary,
+    *,
+    server: str,
+    winner: str,
+    serve: str | None = None,
+    ace: bool = False,
+    opponent: str | None = None,
+    time: str | None = None,
+) -> list[Point]:
+    """Append one point to the library's match log and re-sync its usage counters.
+
+    Args:
+        library: the library whose ``matches.jsonl`` receives the point.
+        server, winner: ``"robot"`` or ``"opponent"``.
+        serve: the library id of the robot's serve (required when the robot serves, absent
+            otherwise).
+        ace: the serve won the point directly (then ``winner == server``).
+        opponent: the opponent's name, if known (empty: unknown).
+        time: ISO 8601 time with offset (default: now, UTC).
+
+    Returns:
+        Every point of the log, the new one last.
+
+    Raises:
+        InvalidInputError: the serve is missing, unknown or given for an opponent serve, or
+            the point is malformed (field named); DataFileError: the log is corrupt (nothing
+            is appended to it then).
+    """
+    entries = library.entries()
+    if server == "robot":
+        if serve is None:
+            raise InvalidInputError("the robot's serve (library id) is required when the robot serves")
+        if serve not in {e.id for e in entries}:
+            raise InvalidInputError(f"serve {serve!r} not found in library {library.folder}")
+    elif serve is not None:
+        raise InvalidInputError("a serve id is only for robot serves (server 'robot')")
+    log = library.folder / MATCH_LOG
+    points = load_points(log)  # refuse to append to a corrupt log
+    point = Point(time=time or datetime.now(UTC).isoformat(timespec="seconds"), server=server, serve=serve, winner=winner, ace=ace, opponent=opponent or None)
+    append_point(log, point)
+    sync_usage(library, points + [point])
+    return points + [point]
+
+
+def last_robot_serve(points: Sequence[Point]) -> str | None:
+    """Library id of the robot's most recent serve in ``points`` (None if it never served)."""
+    return next((p.serve for p in reversed(points) if p.server == "robot"), None)
+
+
+def next_serve(library: ServeLibrary, previous_id: str | None = None) -> LibraryEntry:
+    """The robot's next serve by the paper's strategy (:func:`studio.selection.select_next`):
+    the least-used legal serve of a cluster other than the previous serve's. Previous:
+    ``previous_id``, else the robot's last serve in the match log when it is still in the
+    library (a match goes on across restarts); usage from the entries' counters (kept in
+    step with the log by :func:`record_point`).
+    """
+    from studio.selection import select_next
+
+    entries = library.entries()
+    if previous_id is None:
+        last = last_robot_serve(load_points(library.folder / MATCH_LOG))
+        previous_id = last if last in {e.id for e in entries} else None
+    return select_next(entries, previous_id)
 
 
 @dataclass(frozen=True)
@@ -356,12 +422,32 @@ def _interval(rate: Rate) -> str:
     return f"{100 * lo:.1f}–{100 * hi:.1f}"
 
 
-def stats_report(entries: Sequence[LibraryEntry], points: Sequence[Point], *, min_uses: int = MIN_USES) -> str:
-    """Table-I-like summary and the per-serve table (plain text, markdown tables)."""
+def stats_report(entries: Sequence[LibraryEntry], points: Sequence[Point], *, min_uses: int = MIN_USES, compact: bool = False) -> str:
+    """Table-I-like summary and the per-serve table (plain text, markdown tables).
+
+    ``compact``: for a narrow panel (the studio's Match tab): the Table I figures as a list
+    and the per-serve table without ids and intervals.
+    """
     from studio.selection import serve_cluster
 
     s = match_stats(points)
     right = sum(e.data["side"] == "right" for e in entries)
+    records = serve_records(points, [e.id for e in entries])
+    candidates, total = prune_candidates(records, min_uses=min_uses)
+    flagged = {c.record.id for c in candidates}
+    if compact:
+        lines = [
+            f"- serving: robot won {_pct(s.serving.rate)} % of {s.robot_serves} (95 % WCI {_interval(s.serving)})",
+            f"- receiving: robot won {_pct(s.receiving.rate)} % of {s.receiving.n} (95 % WCI {_interval(s.receiving)})",
+            f"- aces: {s.aces} ({_pct(s.ace_fraction)} % of robot serves); opponents: {', '.join(s.opponents) or '-'}",
+            "",
+            "| serve | cluster | used | won | aces | prune |",
+            "| --- | --- | --- | --- | --- | --- |",
+        ]
+        for e in entries:
+            r = records[e.id]
+            lines.append(f"| {e.data['name']} | {serve_cluster(e)} | {r.used} | {r.won} | {r.aces} | {'yes' if e.id in flagged else ''} |")
+        return "\n".join(lines)
     lines = [
         "| serves in library (right, left) | robot serves | win % receiving (95 % WCI) | win % serving (95 % WCI) | aces (% of robot serves) | opponents |",
         "| --- | --- | --- | --- | --- | --- |",
@@ -369,9 +455,6 @@ def stats_report(entries: Sequence[LibraryEntry], points: Sequence[Point], *, mi
         f"| {_pct(s.serving.rate)} ({_interval(s.serving)}) | {s.aces} ({_pct(s.ace_fraction)} %) | {', '.join(s.opponents) or '-'} |",
         "",
     ]
-    records = serve_records(points, [e.id for e in entries])
-    candidates, total = prune_candidates(records, min_uses=min_uses)
-    flagged = {c.record.id for c in candidates}
     lines += [
         "| id | name | cluster | used | won | lost | aces | win % | 95 % WCI | prune |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
@@ -388,4 +471,3 @@ def stats_report(entries: Sequence[LibraryEntry], points: Sequence[Point], *, mi
     if unknown:
         lines.append(f"serves in the log but not in the library (pruned or foreign): {', '.join(unknown)}")
     return "\n".join(lines)
-

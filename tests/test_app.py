@@ -174,3 +174,47 @@ def test_dashboard_open_in_studio_reaches_the_studio(app: StudioApp) -> None:
     assert dash.open_in_studio() and dash.status.alert_type == "success"
     assert app.poll_open_request() and first in app.message_md.content
     assert app.worker.wait_idle(120)
+
+
+def test_match_tab_selects_records_and_shows_statistics(app: StudioApp) -> None:
+    from studio.evaluate import evaluate_serve
+    from studio.library import ServeLibrary
+    from studio.match import MATCH_LOG, load_points
+    from studio.selection import serve_cluster
+    from studio.serve import load_serve
+
+    lib = ServeLibrary(app.library_dir)
+    examples = Path(__file__).resolve().parent.parent / "examples" / "serves"
+    for name in ("topspin_right", "backspin_right"):
+        lib.add(evaluate_serve(load_serve(examples / f"{name}.json"), app.context))
+    app._match_serve = None
+    app.record_match_point("robot", "won")  # nothing served yet
+    assert "Point not recorded" in app.match_md.content and "Next serve" in app.match_md.content
+    assert not (app.library_dir / MATCH_LOG).exists()
+    app.match_play.value = False
+    app.next_match_serve()
+    first = app._match_serve
+    assert first is not None and "Serve" in app.match_md.content
+    assert app.worker.wait_idle(120) and app.last is not None
+    assert app.last.serve.params == lib.get(first).serve.params  # the selected serve is in the controls
+    app.match_opponent.value = "M. Test"
+    app.record_match_point("robot", "ace")
+    app.next_match_serve()
+    second = app._match_serve
+    clusters = {e.id: serve_cluster(e) for e in lib.entries()}
+    if len(set(clusters.values())) > 1:
+        assert clusters[second] != clusters[first]  # the strategy changes the spin cluster
+    app.record_match_point("opponent", "robot lost")
+    points = load_points(app.library_dir / MATCH_LOG)
+    assert [(p.server, p.serve, p.winner, p.ace, p.opponent) for p in points] == [("robot", first, "robot", True, "M. Test"), ("opponent", None, "opponent", False, "M. Test")]
+    assert lib.get(first).data["usage"] == {"used": 1, "won": 1, "lost": 0, "aces": 1}
+    stats = app.match_stats_md.content
+    assert "serving: robot won 100.0 % of 1" in stats and "receiving: robot won 0.0 % of 1" in stats
+    assert "aces: 1 (100.0 % of robot serves); opponents: M. Test" in stats
+    # a corrupt log: the point is refused with file and line, nothing is appended
+    with open(app.library_dir / MATCH_LOG, "a") as fh:
+        fh.write("{not json\n")
+    app.record_match_point("robot", "lost")
+    assert "Point not recorded" in app.match_md.content and "line 3" in app.match_md.content
+    assert (app.library_dir / MATCH_LOG).read_text().count("\n") == 3
+    assert app.worker.wait_idle(120)

@@ -151,3 +151,25 @@ def test_dashboard_open_in_studio_loads_the_serve_in_the_page(studio, page) -> N
     page.get_by_text("Opened library serve").first.wait_for(timeout=30_000)  # the studio's watcher loaded it
     _wait(lambda: app.last is not None and app.last.serve.params.velocity[1] == pytest.approx(entry.serve.params.velocity[1], abs=0.051), 60, "re-plan of the opened serve")
     page.screenshot(path=str(ARTIFACTS / "studio_opened_from_dashboard.png"))
+
+
+def test_match_tab_serves_and_records_a_point(studio, page) -> None:  # type: ignore[no-untyped-def]
+    from studio.match import MATCH_LOG, load_points
+
+    from studio.evaluate import evaluate_serve
+    from studio.library import ServeLibrary
+    from studio.serve import load_serve
+
+    app, _, serves = studio
+    example = Path(__file__).resolve().parent.parent / "examples" / "serves" / "topspin_right.json"
+    ServeLibrary(serves / "library").add(evaluate_serve(load_serve(example), app.context))  # a legal serve to select
+    page.get_by_role("tab", name="Match").click()
+    page.get_by_role("button", name="Next serve").click()
+    _wait(lambda: app._match_serve is not None, 30, "selected serve")
+    page.get_by_role("button", name="ace").click()
+    log = serves / "library" / MATCH_LOG
+    _wait(lambda: log.exists() and len(load_points(log)) == 1, 30, "recorded point")
+    (point,) = load_points(log)
+    assert point.server == "robot" and point.serve == app._match_serve and point.ace and point.winner == "robot"
+    page.get_by_text("serving: robot won 100.0 % of 1").first.wait_for(timeout=10_000)
+    page.screenshot(path=str(ARTIFACTS / "studio_match.png"))

@@ -262,3 +262,29 @@ def test_cli_prune_and_validate_failures(tmp_path: Path, capsys: pytest.CaptureF
     assert "matches.jsonl: line 64: field 'winner'" in capsys.readouterr().err
     assert main(["library", "validate", str(tmp_path / "empty")]) == 1
     assert "index.json: missing" in capsys.readouterr().err
+
+
+def test_record_point_and_next_serve_continue_a_match_from_the_log(tmp_path: Path) -> None:
+    from studio.match import last_robot_serve, next_serve, record_point
+
+    lib = make_library(tmp_path / "lib", [("top", 250.0, 0.0), ("back", -200.0, 0.0), ("side", 0.0, 220.0)])
+    first = next_serve(lib)  # empty log: least used, then highest reward
+    assert first.id == "side"
+    points = record_point(lib, server="robot", serve=first.id, winner="robot", ace=True, opponent="A. Player", time=T0)
+    assert points == [Point(time=T0, server="robot", serve="side", winner="robot", ace=True, opponent="A. Player")]
+    assert lib.get("side").data["usage"] == {"used": 1, "won": 1, "lost": 0, "aces": 1}
+    record_point(lib, server="opponent", winner="opponent")  # receiving points do not change the previous serve
+    assert last_robot_serve(load_points(lib.folder / MATCH_LOG)) == "side"
+    second = next_serve(lib)  # a later session: the previous serve comes from the log
+    assert second.id != "side" and second.id == "back"
+    assert next_serve(lib, "back").id == "top"  # an explicit previous serve wins over the log
+    for bad, match in (
+        (dict(server="robot", winner="robot"), "required when the robot serves"),
+        (dict(server="robot", serve="nope", winner="robot"), "'nope' not found"),
+        (dict(server="opponent", serve="top", winner="robot"), "only for robot serves"),
+        (dict(server="robot", serve="top", winner="opponent", ace=True), "ace"),
+        (dict(server="referee", winner="robot"), "server"),
+    ):
+        with pytest.raises(InvalidInputError, match=match):
+            record_point(lib, **bad)  # type: ignore[arg-type]
+    assert len(load_points(lib.folder / MATCH_LOG)) == 2  # nothing appended by the refused points
