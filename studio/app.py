@@ -17,7 +17,7 @@ import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +27,12 @@ from studio.reward import TASKS
 from studio.scene import StudioScene
 from studio.serve import LIMIT_SCALE_RANGE, GenomeBounds, HandServe, LimitScale, ServeParams, load_serve, save_serve, serve_from_json
 from studio.worker import LatestWorker, WorkResult
+
+if TYPE_CHECKING:
+    from studio.optimizer import RunSummary
+
+NEW_RUN = "(new run)"
+"""The Optimize tab's "run" choice that starts a new run."""
 
 EXAMPLES_DIR = Path(__file__).resolve().parent.parent / "examples" / "serves"
 
@@ -165,6 +171,7 @@ class StudioApp:
             self.opt_workers = gui.add_number("workers", initial_value=2, min=1, max=16, step=1)
             self.opt_tosses = gui.add_number("tosses per evaluation", initial_value=5, min=1, max=20, step=1)
             self.opt_seed = gui.add_number("seed", initial_value=0, min=0, max=2**31 - 1, step=1)
+            self.opt_run = gui.add_dropdown("run", options=[NEW_RUN], initial_value=NEW_RUN, hint="a new run, or an earlier run of this side and task to continue")
             self.opt_follow = gui.add_checkbox("show best so far", initial_value=True)
             self.opt_start = gui.add_button("Optimize from seeds")
             self.opt_stop = gui.add_button("Stop", disabled=True)
@@ -199,6 +206,8 @@ class StudioApp:
         for handle in controls:
             handle.on_update(lambda _event: self._changed())
         self.side.on_update(lambda _event: self._refresh_toss_options())
+        self.side.on_update(lambda _event: self.refresh_runs())
+        self.task.on_update(lambda _event: self.refresh_runs())
         self.serve_file.on_update(lambda _event: self._load_selected())
         self.save_button.on_click(lambda event: self._save_seed(event))
         self.download_button.on_click(lambda event: self._download(event))
@@ -215,6 +224,7 @@ class StudioApp:
         self._refresh_serve_files()
         self._refresh_library()
         self.refresh_match_stats()
+        self.refresh_runs()
 
     # -- controls <-> serve -----------------------------------------------------------
 
@@ -491,6 +501,19 @@ class StudioApp:
                     seeds.append(serve)
         return seeds
 
+    def refresh_runs(self) -> None:
+        """List the runs of the current side and task in ``runs_dir`` in the "run" dropdown
+        (unreadable run folders are reported in the Optimize tab)."""
+        from studio.optimizer import list_runs
+
+        runs, problems = list_runs(self.runs_dir, side=self.side.value, task=self.task.value)
+        self._runs = {r.label(): r for r in runs}
+        current = self.opt_run.value
+        self.opt_run.options = [NEW_RUN, *self._runs]
+        self.opt_run.value = current if current in self._runs else NEW_RUN
+        if problems and not self._optimizing:
+            self.opt_md.content = "**Unreadable run folders (not listed):**  \n" + "  \n".join(problems)
+
     def _start_optimization(self) -> None:
         if self._optimizing:
             return
@@ -501,6 +524,9 @@ class StudioApp:
             )
             if min(iterations, population, workers, tosses) < 1 or seed < 0:
                 raise InvalidInputError("iterations, population, workers and tosses must be >= 1 and the seed >= 0")
+            run = None if self.opt_run.value == NEW_RUN else self._runs.get(self.opt_run.value)
+            if self.opt_run.value != NEW_RUN and run is None:
+                raise InvalidInputError(f"run {self.opt_run.value!r} is no longer listed")
         except (StudioError, TypeError, ValueError) as err:
             self.opt_md.content = f"**Cannot start:** {err}"
             return
@@ -510,16 +536,22 @@ class StudioApp:
         self.opt_stop.disabled = False
         threading.Thread(
             target=self._run_optimization,
-            args=(controls, iterations, population, workers, tosses, seed),
+            args=(controls, iterations, population, workers, tosses, seed, run),
             name="studio-optimizer",
             daemon=True,
         ).start()
 
-    def _run_optimization(self, controls: Controls, iterations: int, population: int, workers: int, tosses: int, seed: int) -> None:
+    def _run_optimization(self, controls: Controls, iterations: int, population: int, workers: int, tosses: int, seed: int, run: RunSummary | None = None) -> None:
+        """A new HEBO run from the seeds, or with ``run`` the continuation of that run (its own
+        seeds, seed, population, tosses and limits; at least its own iterations)."""
         from studio.optimizer import optimize_serve
 
         side, task = controls.serve.side, controls.task
         run_dir = self.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{side}-{task}"
+        scale = controls.serve.limit_scale
+        if run is not None:
+            side, task, run_dir, population, tosses, seed, scale = run.side, run.task, run.run_dir, run.population, run.tosses, run.seed, run.limit_scale
+            iterations = max(iterations, run.iterations)
         xs: list[float] = []
         ys: list[float] = []
         last_best: list[ServeParams | None] = [None]
@@ -532,11 +564,11 @@ class StudioApp:
             self.opt_md.content = f"{done} / {total} evaluations, best reward {best:+.3f}  \nrun folder `{run_dir}`"
             if params is not None and params != last_best[0] and self.opt_follow.value:
                 last_best[0] = params
-                self.load(HandServe(name=f"{task} best so far", side=side, params=params, task=task, limit_scale=controls.serve.limit_scale))
+                self.load(HandServe(name=f"{task} best so far", side=side, params=params, task=task, limit_scale=scale))
 
         try:
-            seeds = self.seeds_for(side)
-            self.opt_md.content = f"evaluating {len(seeds)} seed(s) ..."
+            seeds = list(run.seeds) if run is not None else self.seeds_for(side)
+            self.opt_md.content = f"resuming `{run_dir.name}` ({run.evaluations} evaluations logged) ..." if run is not None else f"evaluating {len(seeds)} seed(s) ..."
             result = optimize_serve(
                 side=side,
                 task=task,
@@ -549,7 +581,8 @@ class StudioApp:
                 seed=seed,
                 progress=progress,
                 stop=self._stop_event,
-                limit_scale=controls.serve.limit_scale,
+                limit_scale=scale,
+                resume=run is not None,
             )
             if result.best is not None and result.summary is not None:
                 best = replace(result.best, name=f"{task} optimized", task=task, notes=f"HEBO run {run_dir.name}, seed {seed}")
@@ -568,6 +601,7 @@ class StudioApp:
             self._optimizing = False
             self.opt_start.disabled = False
             self.opt_stop.disabled = True
+            self.refresh_runs()
 
     # -- match ------------------------------------------------------------------------
 

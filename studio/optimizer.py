@@ -64,6 +64,8 @@ __all__ = [
     "EvaluatorPool",
     "RunHistory",
     "load_run_history",
+    "RunSummary",
+    "list_runs",
     "bounds_for_toss",
     "optimize_serve",
     "RUN_SCHEMA",
@@ -483,6 +485,72 @@ def load_run_history(run_dir: str | Path) -> RunHistory:
     )  # fmt: skip
 
 
+@dataclass(frozen=True)
+class RunSummary:
+    """An optimization run folder at a glance (for choosing one to resume)."""
+
+    run_dir: Path
+    """The run folder."""
+    side: TossSide
+    """Toss side."""
+    task: str
+    """Reward task."""
+    seed: int
+    """HEBO seed."""
+    population: int
+    """Suggestions per batch."""
+    iterations: int
+    """HEBO batches asked for by the last call."""
+    tosses: int
+    """Tosses per evaluation."""
+    seeds: tuple[HandServe, ...]
+    """The hand-designed seed serves the run observed first."""
+    limit_scale: LimitScale
+    """Dynamic limit expansion of the run."""
+    evaluations: int
+    """Evaluations logged (complete lines)."""
+    best_reward: float
+    """Best reward logged [-] (-inf without evaluations)."""
+
+    @property
+    def planned(self) -> int:
+        """Evaluations of the whole run: seeds + iterations x population."""
+        return len(self.seeds) + self.iterations * self.population
+
+    def label(self) -> str:
+        """One line for a list: folder, progress and best reward."""
+        best = f"best {self.best_reward:+.3f}" if math.isfinite(self.best_reward) else "nothing evaluated"
+        return f"{self.run_dir.name}: {self.evaluations}/{self.planned} evaluations, {best}"
+
+
+def list_runs(runs_dir: str | Path, *, side: str | None = None, task: str | None = None) -> tuple[list[RunSummary], list[str]]:
+    """The optimization runs directly inside ``runs_dir`` (newest folder name first),
+    optionally only those of ``side`` and ``task``, and one message per folder that holds a
+    ``run.json`` but cannot be read (file and field named). An absent folder has no runs."""
+    from studio.serve import serve_from_json
+
+    runs: list[RunSummary] = []
+    problems: list[str] = []
+    folder = Path(runs_dir)
+    if not folder.is_dir():
+        return runs, problems
+    for run_dir in sorted((d for d in folder.iterdir() if (d / "run.json").is_file()), key=lambda d: d.name, reverse=True):
+        try:
+            meta = read_run_meta(run_dir)
+            if (side is not None and meta.get("side") != side) or (task is not None and meta.get("task") != task):
+                continue
+            history = load_run_history(run_dir)
+            seeds = tuple(serve_from_json(d, source=f"{run_dir / 'run.json'}: seeds[{i}]") for i, d in enumerate(meta.get("seeds", [])))
+            runs.append(RunSummary(
+                run_dir=run_dir, side=meta["side"], task=str(meta["task"]), seed=int(meta["seed"]), population=int(meta["population"]),
+                iterations=int(meta["iterations"]), tosses=int(meta["tosses"]), seeds=seeds, limit_scale=LimitScale.from_json(meta["limit_scale"]),
+                evaluations=len(history.reward), best_reward=float(history.reward.max()) if len(history.reward) else -math.inf,
+            ))  # fmt: skip
+        except (DataFileError, KeyError, TypeError, ValueError) as exc:
+            problems.append(str(exc) if isinstance(exc, DataFileError) else f"{run_dir / 'run.json'}: missing or malformed field ({exc!r})")
+    return runs, problems
+
+
 class _Log:
     def __init__(self, path: Path) -> None:
         self.f = open(path, "a", encoding="utf-8")
@@ -536,7 +604,8 @@ def optimize_serve(
         context: evaluation context for in-process evaluation (``workers == 1``) and for
             the toss model of the default bounds; worker processes build their own.
             Default: built on demand.
-        seeds: hand-designed serves evaluated and observed before the first suggestion.
+        seeds: hand-designed serves evaluated and observed before the first suggestion (on
+            resume, none given: the run's own, from its run.json).
         iterations, population: HEBO batches and points per batch (paper: 100 x 20).
         tosses: tosses per training evaluation (1: mean toss; K > 1: K recorded tosses
             drawn per evaluation, mean reward, legal if >= ``min_legal_fraction`` legal).
@@ -589,6 +658,10 @@ def optimize_serve(
     old = read_run_meta(run_dir) if resume and (Path(run_dir) / "run.json").exists() else None
     if limit_scale is None:  # a resumed run keeps its own scale
         limit_scale = LimitScale.from_json(old["limit_scale"]) if old is not None else LimitScale()
+    if old is not None and not seeds and old.get("seeds"):  # and its own seeds (run.json keeps them)
+        from studio.serve import serve_from_json
+
+        seeds = [serve_from_json(d, source=f"{Path(run_dir) / 'run.json'}: seeds[{i}]") for i, d in enumerate(old["seeds"])]
     # the workers start first and initialize while this process loads the toss model and HEBO
     with EvaluatorPool(side=side, task=task, workers=workers, min_legal_fraction=min_legal_fraction, evaluate=evaluate, context=context, ipopt_fallback=ipopt_fallback, limit_scale=limit_scale) as pool:
         if bounds is None:

@@ -218,3 +218,36 @@ def test_match_tab_selects_records_and_shows_statistics(app: StudioApp) -> None:
     assert "Point not recorded" in app.match_md.content and "line 3" in app.match_md.content
     assert (app.library_dir / MATCH_LOG).read_text().count("\n") == 3
     assert app.worker.wait_idle(120)
+
+
+def _optimize_and_wait(app: StudioApp) -> None:
+    app._start_optimization()
+    deadline = time.monotonic() + 600
+    while app._optimizing and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not app._optimizing and "Done" in app.opt_md.content, app.opt_md.content
+
+
+def test_an_earlier_run_is_listed_and_resumed_without_repeating_evaluations(app: StudioApp) -> None:
+    from studio.app import NEW_RUN
+
+    app.opt_iterations.value = 1
+    app.opt_population.value = 2
+    app.opt_workers.value = 1
+    app.opt_tosses.value = 1
+    app.opt_run.value = NEW_RUN
+    before = set(app.runs_dir.iterdir()) if app.runs_dir.exists() else set()
+    _optimize_and_wait(app)
+    (run_dir,) = set(app.runs_dir.iterdir()) - before
+    first = (run_dir / "evaluations.jsonl").read_text().splitlines()
+    label = next(k for k, r in app._runs.items() if r.run_dir == run_dir)  # listed after the run
+    assert label in app.opt_run.options and f"{len(first)}/{len(first)} evaluations" in label
+    app.opt_run.value = label
+    app.opt_iterations.value = 2
+    app.opt_population.value = 7  # ignored: a resumed run keeps its own population
+    _optimize_and_wait(app)
+    lines = (run_dir / "evaluations.jsonl").read_text().splitlines()
+    assert lines[: len(first)] == first and len(lines) == len(first) + 2  # one more batch of the run's 2
+    assert set(app.runs_dir.iterdir()) - before == {run_dir}  # no new folder
+    assert json.loads((run_dir / "run.json").read_text())["iterations"] == 2
+    app.opt_run.value = NEW_RUN

@@ -394,3 +394,32 @@ def test_runs_logged_before_limit_scale_resume_with_the_robots_limits(tmp_path: 
     (tmp_path / "run.json").write_text(json.dumps(meta))
     res = run(tmp_path, iterations=2, resume=True)
     assert res.best is not None and res.best.limit_scale.is_identity
+
+
+def test_list_runs_filters_summarizes_and_reports_unreadable_folders(tmp_path: Path) -> None:
+    from studio.optimizer import list_runs
+
+    run(tmp_path / "a-run", iterations=1)
+    run(tmp_path / "b-run", iterations=2, side="right", task="backspin")
+    (tmp_path / "c-broken").mkdir()
+    (tmp_path / "c-broken" / "run.json").write_text("{nope")
+    (tmp_path / "not-a-run").mkdir()
+    runs, problems = list_runs(tmp_path)
+    assert [r.run_dir.name for r in runs] == ["b-run", "a-run"]  # newest name first
+    assert len(problems) == 1 and "c-broken" in problems[0] and "not readable JSON" in problems[0]
+    a = runs[1]
+    assert (a.side, a.task, a.seed, a.population, a.iterations, a.tosses) == ("right", "topspin_velocity", 3, 4, 1, 1)
+    assert a.evaluations == a.planned == 2 + 4 and [s.name for s in a.seeds] == ["hand0", "hand1"]
+    assert a.best_reward == max(json.loads(line)["reward"] for line in (tmp_path / "a-run" / "evaluations.jsonl").read_text().splitlines())
+    assert a.label().startswith("a-run: 6/6 evaluations, best ")
+    only, _ = list_runs(tmp_path, side="right", task="backspin")
+    assert [r.run_dir.name for r in only] == ["b-run"]
+    assert list_runs(tmp_path / "absent") == ([], [])
+
+
+def test_resume_without_seeds_keeps_the_runs_own(tmp_path: Path) -> None:
+    run(tmp_path, iterations=1)
+    recorded = json.loads((tmp_path / "run.json").read_text())["seeds"]
+    res = run(tmp_path, iterations=2, seeds=[], resume=True)
+    assert json.loads((tmp_path / "run.json").read_text())["seeds"] == recorded  # not overwritten with []
+    assert res.evaluations == 2 + 2 * 4 and [r["source"] for r in read_log(tmp_path)][:2] == ["seed:hand0", "seed:hand1"]
