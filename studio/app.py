@@ -100,6 +100,7 @@ class StudioApp:
         self._bounds = GenomeBounds()
         self._stop_event = threading.Event()
         self._match_serve: str | None = None  # library id of the robot's current match serve
+        self._robust_context: EvaluationContext | None = None  # robustify's own (built on first use)
         self._optimizing = False
         self.runs_dir = serves_dir.parent / "runs"
         self.worker: LatestWorker[Controls, Evaluation] = LatestWorker(self._compute, self._publish, name="studio-evaluator")
@@ -174,6 +175,8 @@ class StudioApp:
             self.opt_run = gui.add_dropdown("run", options=[NEW_RUN], initial_value=NEW_RUN, hint="a new run, or an earlier run of this side and task to continue")
             self.opt_follow = gui.add_checkbox("show best so far", initial_value=True)
             self.opt_start = gui.add_button("Optimize from seeds")
+            self.rob_evaluations = gui.add_number("robust candidates", initial_value=600, min=12, max=10000, step=12)
+            self.rob_start = gui.add_button("Make robust", hint="local search around the current serve for one legal on more recorded tosses, keeping 90 % of its spin at the net")
             self.opt_stop = gui.add_button("Stop", disabled=True)
             self.opt_progress = gui.add_progress_bar(0.0, animated=False)
             self.opt_md = gui.add_markdown("")
@@ -216,6 +219,7 @@ class StudioApp:
         self.library_pick.on_update(lambda _event: self._load_library_serve())
         self.play.on_click(lambda _event: self._toggle_play())
         self.opt_start.on_click(lambda _event: self._start_optimization())
+        self.rob_start.on_click(lambda _event: self.start_robustify())
         self.opt_stop.on_click(lambda _event: self._stop_event.set())
         self.match_next.on_click(lambda _event: self.next_match_serve())
         self.match_robot.on_click(lambda event: self.record_match_point("robot", event.target.value))
@@ -530,10 +534,7 @@ class StudioApp:
         except (StudioError, TypeError, ValueError) as err:
             self.opt_md.content = f"**Cannot start:** {err}"
             return
-        self._optimizing = True
-        self._stop_event.clear()
-        self.opt_start.disabled = True
-        self.opt_stop.disabled = False
+        self._set_busy(True)
         threading.Thread(
             target=self._run_optimization,
             args=(controls, iterations, population, workers, tosses, seed, run),
@@ -598,10 +599,58 @@ class StudioApp:
         except Exception as err:  # noqa: BLE001 - shown in the panel, the studio keeps running
             self.opt_md.content = f"**Optimization failed:** {type(err).__name__}: {err}  \n(evaluations so far are kept in `{run_dir}`)"
         finally:
-            self._optimizing = False
-            self.opt_start.disabled = False
-            self.opt_stop.disabled = True
+            self._set_busy(False)
             self.refresh_runs()
+
+    def start_robustify(self) -> None:
+        """Run :func:`studio.robust.robustify_serve` on the current serve in the background
+        (progress and Stop as an optimization); the result lands in the controls."""
+        if self._optimizing:
+            return
+        try:
+            controls = self.controls()
+            evaluations = int(self.rob_evaluations.value)
+            if evaluations < 1:
+                raise InvalidInputError("robust candidates must be >= 1")
+        except (StudioError, TypeError, ValueError) as err:
+            self.opt_md.content = f"**Cannot start:** {err}"
+            return
+        self._set_busy(True)
+        threading.Thread(target=self._run_robustify, args=(controls, evaluations), name="studio-robustify", daemon=True).start()
+
+    def _set_busy(self, busy: bool) -> None:
+        self._optimizing = busy
+        if busy:
+            self._stop_event.clear()
+        self.opt_start.disabled = busy
+        self.rob_start.disabled = busy
+        self.opt_stop.disabled = not busy
+
+    def _run_robustify(self, controls: Controls, evaluations: int) -> None:
+        from studio.robust import RobustScore, robustify_serve
+
+        start = time.perf_counter()
+
+        def progress(done: int, total: int, best: RobustScore) -> None:
+            self.opt_progress.value = 100.0 * done / max(total, 1)
+            self.opt_md.content = f"robustify: {done} / {total} candidates, best legal on {best.legal}/{best.tosses} recorded tosses ({time.perf_counter() - start:.0f} s)"
+
+        try:
+            if self._robust_context is None:  # the live evaluation's context is not shared between threads
+                self.opt_md.content = "robustify: loading models ..."
+                self._robust_context = EvaluationContext.default()
+            res = robustify_serve(controls.serve, context=self._robust_context, task=controls.task, evaluations=evaluations, progress=progress, stop=self._stop_event)
+            s0, s1 = res.start, res.best
+            head = f"**{'Stopped' if res.stopped else 'Done'}** after {res.evaluations} candidates ({time.perf_counter() - start:.0f} s), keeping {res.keep.describe()}."
+            if res.improved:
+                self.load(replace(res.serve, name=f"{controls.serve.name} robust"))
+                self.opt_md.content = f"{head} Legal on {s1.legal}/{s1.tosses} recorded tosses (was {s0.legal}/{s0.tosses}); the serve is now in the controls."
+            else:
+                self.opt_md.content = f"{head} Nothing beat the current serve (legal on {s0.legal}/{s0.tosses} recorded tosses{'' if s0.mean_legal else ', not legal on the mean toss'})."
+        except Exception as err:  # noqa: BLE001 - shown in the panel, the studio keeps running
+            self.opt_md.content = f"**Robustify failed:** {type(err).__name__}: {err}"
+        finally:
+            self._set_busy(False)
 
     # -- match ------------------------------------------------------------------------
 

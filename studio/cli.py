@@ -130,6 +130,45 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     return 0 if s.legal else 1
 
 
+def _cmd_robustify(args: argparse.Namespace) -> int:
+    """Search around a serve for one legal on more recorded tosses (studio.robust)."""
+    import time
+    from pathlib import Path
+
+    from studio.robust import RobustScore, robustify_serve
+    from studio.serve import load_serve, save_serve
+
+    serve = load_serve(args.serve)
+    run_dir = Path(args.run_dir) if args.run_dir else None
+    start = time.perf_counter()
+
+    def progress(done: int, total: int, best: RobustScore) -> None:
+        print(f"\r{done:4d}/{total} candidates  best legal on {best.legal}/{best.tosses} tosses  {time.perf_counter() - start:5.1f} s", end="", flush=True)
+
+    try:
+        res = robustify_serve(
+            serve, task=args.task, keep_spin=args.keep_spin, sigma=args.sigma, evaluations=args.evaluations, seed=args.seed,
+            run_dir=run_dir, resume=args.resume, progress=progress,
+        )  # fmt: skip
+    except KeyboardInterrupt:
+        where = f"; continue with --resume --run-dir {run_dir}" if run_dir else " (give --run-dir to be able to resume)"
+        print(f"\ninterrupted{where}")
+        return 130
+    print()
+    s0, s1 = res.start, res.best
+    print(f"start: legal on {s0.legal}/{s0.tosses} recorded tosses ({'legal' if s0.mean_legal else 'NOT legal'} on the mean toss), net spin top/back {s0.net_topspin}, side {s0.net_sidespin} rad/s")
+    print(f"kept: {res.keep.describe()}")
+    if not res.improved:
+        print(f"no candidate of {res.evaluations} beat the start: nothing written")
+        return 1
+    fmt = lambda v: "-" if v is None else f"{v:+.0f}"  # noqa: E731
+    print(f"found: legal on {s1.legal}/{s1.tosses} recorded tosses, net spin top/back {fmt(s1.net_topspin)}, side {fmt(s1.net_sidespin)} rad/s")
+    out = Path(args.out) if args.out else Path(args.serve).with_name(Path(args.serve).stem + "_robust.json")
+    save_serve(out, res.serve)
+    print(f"written to {out}")
+    return 0
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     """Train ``count`` serves for a task (one HEBO run each, seeds seed0, seed0+1, ...),
     export each legal chosen serve to the library, and print a Table II-like summary."""
@@ -323,6 +362,18 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--export", default=None, metavar="DIR", help="write the plan to the serve library folder DIR")
     p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default: the serve file's limit_scale, else 1)")
     handlers["evaluate"] = _cmd_evaluate
+
+    p = sub.add_parser("robustify", help="search around a serve for one legal on more recorded tosses, keeping its spin")
+    p.add_argument("serve", help="hand-designed serve JSON file")
+    p.add_argument("--task", default=None, help="reward task of the tie-break (default: the serve's)")
+    p.add_argument("--keep-spin", type=float, default=0.9, help="fraction of the serve's dominant net spin to keep (default 0.9)")
+    p.add_argument("--sigma", type=float, default=0.03, help="CMA-ES step on the normalized genome (default 0.03)")
+    p.add_argument("--evaluations", type=int, default=600, help="candidates to try (default 600, ~1 min)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default=None, help="where to write the robust serve (default: <serve>_robust.json beside it)")
+    p.add_argument("--run-dir", default=None, help="log every candidate here (robustify.jsonl) to be able to resume")
+    p.add_argument("--resume", action="store_true", help="continue the search logged in --run-dir")
+    handlers["robustify"] = _cmd_robustify
 
     p = sub.add_parser("optimize", help="optimize one serve with HEBO, seeded from hand-designed serves")
     p.add_argument("seeds", nargs="*", help="hand-designed serve JSON files observed before the first suggestion")

@@ -251,3 +251,17 @@ def test_an_earlier_run_is_listed_and_resumed_without_repeating_evaluations(app:
     assert set(app.runs_dir.iterdir()) - before == {run_dir}  # no new folder
     assert json.loads((run_dir / "run.json").read_text())["iterations"] == 2
     app.opt_run.value = NEW_RUN
+
+
+def test_make_robust_runs_in_the_background_and_reports(app: StudioApp) -> None:
+    app.rob_evaluations.value = 12
+    app.start_robustify()
+    assert app._optimizing and app.rob_start.disabled and app.opt_start.disabled
+    deadline = time.monotonic() + 600
+    while app._optimizing and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not app._optimizing and not app.rob_start.disabled
+    text = app.opt_md.content
+    assert "Done" in text and "after 12 candidates" in text, text
+    assert ("now in the controls" in text) or ("Nothing beat the current serve" in text)
+    assert app.worker.wait_idle(120)

@@ -107,3 +107,19 @@ def test_in_process_training_gets_single_thread_pools(monkeypatch: pytest.Monkey
     assert "OMP_NUM_THREADS" not in os.environ
     assert single_thread_pools(argparse.Namespace(command="train", workers=1, ray=None))
     assert os.environ["OMP_NUM_THREADS"] == os.environ["OPENBLAS_NUM_THREADS"] == "1" and os.environ["MKL_NUM_THREADS"] == "4"
+
+
+def test_robustify_reports_and_writes_only_an_improvement(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    src = tmp_path / "serve.json"
+    src.write_text((EXAMPLES / "sidespin_left.json").read_text())
+    code = main(["robustify", str(src), "--evaluations", "12", "--run-dir", str(tmp_path / "run")])
+    out = capsys.readouterr().out
+    assert "start: legal on 12/20 recorded tosses (legal on the mean toss)" in out and "kept: sidespin at the net >= 238 rad/s" in out
+    written = tmp_path / "serve_robust.json"
+    assert (code == 0) == written.exists()  # written only when a candidate beat the start
+    assert len((tmp_path / "run" / "robustify.jsonl").read_text().splitlines()) == 12
+    code = main(["robustify", str(src), "--evaluations", "24", "--run-dir", str(tmp_path / "run"), "--resume"])
+    capsys.readouterr()
+    assert len((tmp_path / "run" / "robustify.jsonl").read_text().splitlines()) == 24  # 12 replayed, 12 new
+    assert main(["robustify", str(src), "--keep-spin", "2"]) == 2
+    assert "keep_spin out of range" in capsys.readouterr().err

@@ -1,0 +1,133 @@
+"""Robustify: local CMA-ES around a serve, spin kept, never worse than the start, exact resume."""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from studio.errors import DataFileError, InvalidInputError
+from studio.robust import ILLEGAL_ON_MEAN, LOG_NAME, RobustScore, objective, robustify_serve, spin_keep
+from studio.serve import GenomeBounds, HandServe, LimitScale, ServeParams, load_serve
+
+BOUNDS = GenomeBounds(tau=(0.65, 1.0))
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples" / "serves"
+START = HandServe(
+    name="start", side="right", task="backspin", limit_scale=LimitScale.uniform(1.2),
+    params=ServeParams.denormalize(np.full(10, 0.5), BOUNDS),
+)  # fmt: skip
+GOOD = np.array([0.56, 0.47, 0.5, 0.53, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5])
+
+
+class Fake:
+    """Legal count grows towards GOOD; the backspin at the net fades along gene 0 (beyond
+    0.6 the serve keeps less than 90 % of it); illegal on the mean toss far from the start."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def __call__(self, serve: HandServe) -> RobustScore:
+        self.calls += 1
+        z = serve.params.normalize(BOUNDS)
+        d = float(np.linalg.norm(z - GOOD))
+        back = -100.0 + max(0.0, z[0] - 0.5) * 150.0
+        if float(np.linalg.norm(z - 0.5)) > 0.3:
+            return RobustScore(False, 0, 20, -3.0, back, 5.0)
+        return RobustScore(True, int(round(20 * math.exp(-((d / 0.08) ** 2)))), 20, -1.0 + 2 * math.exp(-d), back, 5.0)
+
+
+def test_spin_keep_and_objective() -> None:
+    back = RobustScore(True, 5, 20, 0.2, -80.0, 30.0)
+    keep = spin_keep(back, 0.9)
+    assert (keep.component, keep.sign, keep.floor) == ("topspin", -1.0, pytest.approx(72.0))
+    assert keep.describe() == "backspin at the net >= 72 rad/s"
+    assert keep.deficit(back) == 0.0 and keep.deficit(RobustScore(True, 5, 20, 0.2, -60.0, 0.0)) == pytest.approx(12.0)
+    assert keep.deficit(RobustScore(True, 5, 20, 0.2, None, None)) == math.inf
+    assert objective(back, keep) == pytest.approx(-(5 + 0.02))
+    assert objective(RobustScore(True, 9, 20, 0.0, -60.0, 0.0), keep) == pytest.approx(-9 + 4.0)  # 12 rad/s short
+    assert objective(RobustScore(False, 0, 20, -3.0, -80.0, 0.0), keep) == ILLEGAL_ON_MEAN
+    side = spin_keep(RobustScore(True, 5, 20, 0.2, 40.0, -200.0), 0.5)
+    assert (side.component, side.sign, side.floor) == ("sidespin", -1.0, 100.0)
+    assert spin_keep(RobustScore(True, 5, 20, 0.2, 10.0, 5.0), 0.9).describe() == "no spin to keep"
+
+
+def test_finds_a_more_robust_serve_that_keeps_the_spin(tmp_path: Path) -> None:
+    fake = Fake()
+    res = robustify_serve(START, bounds=BOUNDS, evaluations=240, score=fake, run_dir=tmp_path)
+    assert fake.calls == 240 + 1 and res.evaluations == 240 and not res.stopped
+    assert res.improved and res.best.legal > res.start.legal and res.best.legal >= 15
+    assert res.keep.deficit(res.best) == 0.0  # the spin floor holds for the chosen serve
+    z = res.serve.params.normalize(BOUNDS)
+    assert z[0] <= 0.6 + 1e-9
+    # the serve's identity is kept, the notes say what was done
+    assert (res.serve.name, res.serve.side, res.serve.task, res.serve.limit_scale) == ("start", "right", "backspin", LimitScale.uniform(1.2))
+    assert "legal on" in res.serve.notes and f"(was {res.start.legal}/20)" in res.serve.notes
+    lines = (tmp_path / LOG_NAME).read_text().splitlines()
+    assert len(lines) == 240 and all(math.isfinite(json.loads(line)["objective"]) for line in lines)
+
+
+def test_never_worse_than_the_start() -> None:
+    class Flat(Fake):
+        def __call__(self, serve: HandServe) -> RobustScore:
+            self.calls += 1
+            top = float(serve.params.normalize(BOUNDS)[0])
+            return RobustScore(True, 8 if self.calls == 1 else 3, 20, 0.0, -100.0 if self.calls == 1 else -100.0 + top, 0.0)
+
+    res = robustify_serve(START, bounds=BOUNDS, evaluations=24, score=Flat())
+    assert not res.improved and res.serve == START and res.best == res.start
+
+
+def test_stop_then_resume_equals_the_uninterrupted_search(tmp_path: Path) -> None:
+    whole = robustify_serve(START, bounds=BOUNDS, evaluations=96, score=Fake(), run_dir=tmp_path / "whole")
+    stop = threading.Event()
+
+    def progress(done: int, total: int, best: RobustScore) -> None:
+        if done >= 36:
+            stop.set()
+
+    part = robustify_serve(START, bounds=BOUNDS, evaluations=96, score=Fake(), run_dir=tmp_path / "part", progress=progress, stop=stop)
+    assert part.stopped and part.evaluations == 36
+    # a torn last line (killed while writing) is cut off and that candidate scored again
+    log = tmp_path / "part" / LOG_NAME
+    log.write_bytes(log.read_bytes() + b'{"index": 36, "genome": [0.5')
+    fake = Fake()
+    resumed = robustify_serve(START, bounds=BOUNDS, evaluations=96, score=fake, run_dir=tmp_path / "part", resume=True)
+    assert fake.calls == 1 + (96 - 36)  # the start, then only what was not logged
+    assert resumed.serve == whole.serve and resumed.best == whole.best
+    assert (tmp_path / "part" / LOG_NAME).read_text() == (tmp_path / "whole" / LOG_NAME).read_text()
+    # another search's settings or log are refused by field / line
+    with pytest.raises(DataFileError, match="field 'sigma'"):
+        robustify_serve(START, bounds=BOUNDS, evaluations=96, score=Fake(), run_dir=tmp_path / "part", resume=True, sigma=0.05)
+    lines = log.read_text().splitlines()
+    doc = json.loads(lines[3])
+    doc["genome"][0] += 0.01
+    lines[3] = json.dumps(doc)
+    log.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataFileError, match="line 4: the logged candidate differs"):
+        robustify_serve(START, bounds=BOUNDS, evaluations=96, score=Fake(), run_dir=tmp_path / "part", resume=True)
+    with pytest.raises(InvalidInputError, match="already holds a search"):
+        robustify_serve(START, bounds=BOUNDS, evaluations=96, score=Fake(), run_dir=tmp_path / "part")
+
+
+@pytest.mark.parametrize(
+    "kw,name",
+    [({"keep_spin": 1.5}, "keep_spin"), ({"sigma": 0.0}, "sigma"), ({"sigma": math.nan}, "sigma"), ({"evaluations": 0}, "evaluations"), ({"population": 2}, "population"), ({"resume": True}, "run_dir")],
+)
+def test_bad_settings_are_rejected_by_name(kw: dict, name: str) -> None:
+    with pytest.raises(InvalidInputError, match=name):
+        robustify_serve(START, bounds=BOUNDS, score=Fake(), **kw)
+
+
+def test_real_search_on_an_example_keeps_its_spin_and_legality() -> None:
+    from studio.evaluate import EvaluationContext
+
+    serve = load_serve(EXAMPLES / "backspin_right.json")
+    res = robustify_serve(serve, context=EvaluationContext.default(), evaluations=24, sigma=0.05)
+    assert res.start.mean_legal and res.start.tosses == 20
+    assert res.best.legal >= res.start.legal and res.best.mean_legal
+    assert res.keep.component == "topspin" and res.keep.sign == -1.0  # a backspin serve stays one
+    assert res.keep.deficit(res.best) == 0.0
