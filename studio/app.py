@@ -101,6 +101,8 @@ class StudioApp:
         self._stop_event = threading.Event()
         self._match_serve: str | None = None  # library id of the robot's current match serve
         self._robust_context: EvaluationContext | None = None  # robustify's own (built on first use)
+        self._busy_lock = threading.Lock()
+        self._runs: dict[str, RunSummary] = {}
         self._optimizing = False
         self.runs_dir = serves_dir.parent / "runs"
         self.worker: LatestWorker[Controls, Evaluation] = LatestWorker(self._compute, self._publish, name="studio-evaluator")
@@ -511,16 +513,15 @@ class StudioApp:
         from studio.optimizer import list_runs
 
         runs, problems = list_runs(self.runs_dir, side=self.side.value, task=self.task.value)
+        chosen = self._runs[self.opt_run.value].run_dir.name if self.opt_run.value in self._runs else None
         self._runs = {r.label(): r for r in runs}
-        current = self.opt_run.value
         self.opt_run.options = [NEW_RUN, *self._runs]
-        self.opt_run.value = current if current in self._runs else NEW_RUN
+        # the labels carry the progress: the choice follows its folder
+        self.opt_run.value = next((k for k, r in self._runs.items() if r.run_dir.name == chosen), NEW_RUN)
         if problems and not self._optimizing:
             self.opt_md.content = "**Unreadable run folders (not listed):**  \n" + "  \n".join(problems)
 
     def _start_optimization(self) -> None:
-        if self._optimizing:
-            return
         try:
             controls = self.controls()
             iterations, population, workers, tosses, seed = (
@@ -531,10 +532,11 @@ class StudioApp:
             run = None if self.opt_run.value == NEW_RUN else self._runs.get(self.opt_run.value)
             if self.opt_run.value != NEW_RUN and run is None:
                 raise InvalidInputError(f"run {self.opt_run.value!r} is no longer listed")
-        except (StudioError, TypeError, ValueError) as err:
+        except (StudioError, TypeError, ValueError, OverflowError) as err:
             self.opt_md.content = f"**Cannot start:** {err}"
             return
-        self._set_busy(True)
+        if not self._claim_busy():
+            return
         threading.Thread(
             target=self._run_optimization,
             args=(controls, iterations, population, workers, tosses, seed, run),
@@ -599,24 +601,32 @@ class StudioApp:
         except Exception as err:  # noqa: BLE001 - shown in the panel, the studio keeps running
             self.opt_md.content = f"**Optimization failed:** {type(err).__name__}: {err}  \n(evaluations so far are kept in `{run_dir}`)"
         finally:
+            self.refresh_runs()  # before the busy flag drops: unreadable folders do not hide the result
             self._set_busy(False)
-            self.refresh_runs()
 
     def start_robustify(self) -> None:
         """Run :func:`studio.robust.robustify_serve` on the current serve in the background
         (progress and Stop as an optimization); the result lands in the controls."""
-        if self._optimizing:
-            return
         try:
             controls = self.controls()
-            evaluations = int(self.rob_evaluations.value)
-            if evaluations < 1:
-                raise InvalidInputError("robust candidates must be >= 1")
-        except (StudioError, TypeError, ValueError) as err:
+            value = self.rob_evaluations.value
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 1 and float(value).is_integer()):
+                raise InvalidInputError(f"robust candidates must be a whole number >= 1, got {value!r}")
+            evaluations = int(value)
+        except StudioError as err:
             self.opt_md.content = f"**Cannot start:** {err}"
             return
-        self._set_busy(True)
+        if not self._claim_busy():
+            return
         threading.Thread(target=self._run_robustify, args=(controls, evaluations), name="studio-robustify", daemon=True).start()
+
+    def _claim_busy(self) -> bool:
+        """Mark the studio busy with one long job (optimization or robustify); False if one runs."""
+        with self._busy_lock:
+            if self._optimizing:
+                return False
+            self._set_busy(True)
+            return True
 
     def _set_busy(self, busy: bool) -> None:
         self._optimizing = busy
@@ -640,13 +650,9 @@ class StudioApp:
                 self.opt_md.content = "robustify: loading models ..."
                 self._robust_context = EvaluationContext.default()
             res = robustify_serve(controls.serve, context=self._robust_context, task=controls.task, evaluations=evaluations, progress=progress, stop=self._stop_event)
-            s0, s1 = res.start, res.best
-            head = f"**{'Stopped' if res.stopped else 'Done'}** after {res.evaluations} candidates ({time.perf_counter() - start:.0f} s), keeping {res.keep.describe()}."
             if res.improved:
                 self.load(replace(res.serve, name=f"{controls.serve.name} robust"))
-                self.opt_md.content = f"{head} Legal on {s1.legal}/{s1.tosses} recorded tosses (was {s0.legal}/{s0.tosses}); the serve is now in the controls."
-            else:
-                self.opt_md.content = f"{head} Nothing beat the current serve (legal on {s0.legal}/{s0.tosses} recorded tosses{'' if s0.mean_legal else ', not legal on the mean toss'})."
+            self.opt_md.content = f"**{res.summary()}**" + (" The serve is now in the controls." if res.improved else "") + f" ({time.perf_counter() - start:.0f} s)"
         except Exception as err:  # noqa: BLE001 - shown in the panel, the studio keeps running
             self.opt_md.content = f"**Robustify failed:** {type(err).__name__}: {err}"
         finally:
@@ -661,7 +667,10 @@ class StudioApp:
         from studio.selection import serve_cluster, usage_count
 
         try:
-            entry = next_serve(ServeLibrary(self.library_dir), self._match_serve)
+            library = ServeLibrary(self.library_dir)
+            if self._match_serve not in {e.id for e in library.entries()}:
+                self._match_serve = None  # pruned or removed meanwhile: the log's last serve counts
+            entry = next_serve(library, self._match_serve)
         except StudioError as err:
             self.match_md.content = f"**No serve:** {err}"
             return

@@ -155,14 +155,10 @@ def _cmd_robustify(args: argparse.Namespace) -> int:
         print(f"\ninterrupted{where}")
         return 130
     print()
-    s0, s1 = res.start, res.best
-    print(f"start: legal on {s0.legal}/{s0.tosses} recorded tosses ({'legal' if s0.mean_legal else 'NOT legal'} on the mean toss), net spin top/back {s0.net_topspin}, side {s0.net_sidespin} rad/s")
-    print(f"kept: {res.keep.describe()}")
+    print(res.summary())
     if not res.improved:
-        print(f"no candidate of {res.evaluations} beat the start: nothing written")
+        print("nothing written")
         return 1
-    fmt = lambda v: "-" if v is None else f"{v:+.0f}"  # noqa: E731
-    print(f"found: legal on {s1.legal}/{s1.tosses} recorded tosses, net spin top/back {fmt(s1.net_topspin)}, side {fmt(s1.net_sidespin)} rad/s")
     out = Path(args.out) if args.out else Path(args.serve).with_name(Path(args.serve).stem + "_robust.json")
     save_serve(out, res.serve)
     print(f"written to {out}")
@@ -366,9 +362,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p = sub.add_parser("robustify", help="search around a serve for one legal on more recorded tosses, keeping its spin")
     p.add_argument("serve", help="hand-designed serve JSON file")
     p.add_argument("--task", default=None, help="reward task of the tie-break (default: the serve's)")
-    p.add_argument("--keep-spin", type=float, default=0.9, help="fraction of the serve's dominant net spin to keep (default 0.9)")
+    p.add_argument("--keep-spin", type=float, default=0.9, help="fraction of each spin component (top/back, side) at the net to keep (default 0.9)")
     p.add_argument("--sigma", type=float, default=0.03, help="CMA-ES step on the normalized genome (default 0.03)")
-    p.add_argument("--evaluations", type=int, default=600, help="candidates to try (default 600, ~1 min)")
+    p.add_argument("--evaluations", type=int, default=600, help="candidates in all, in whole generations of 12 (default 600, ~1 min); a resume counts the logged ones")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="where to write the robust serve (default: <serve>_robust.json beside it)")
     p.add_argument("--run-dir", default=None, help="log every candidate here (robustify.jsonl) to be able to resume")

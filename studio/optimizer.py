@@ -51,6 +51,7 @@ import numpy.typing as npt
 
 from studio.errors import DataFileError, InvalidInputError
 from studio.hebo_adapter import HeboAdapter, HeboConfig
+from studio.jsonlog import read_jsonl, write_line
 from studio.reward import PLANNER_FAILURE_PENALTY
 from studio.serve import GENE_NAMES, GenomeBounds, HandServe, LimitScale, ServeParams, TossSide
 from studio.threads import THREAD_VARS, single_thread_env
@@ -369,32 +370,8 @@ def _bounds_json(b: GenomeBounds) -> dict[str, Any]:
 
 
 def _read_jsonl(path: Path) -> list[EvaluationRecord]:
-    """Records of ``path``; a torn (unterminated or unparsable) last line is cut off the file."""
-    if not path.exists():
-        return []
-    raw = path.read_bytes()
-    lines = raw.split(b"\n")
-    good: list[EvaluationRecord] = []
-    good_bytes = 0
-    for k, line in enumerate(lines):
-        last = k == len(lines) - 1
-        if not line.strip():
-            if not last:
-                good_bytes += len(line) + 1
-            continue
-        try:
-            if last:  # no newline after it: written partially
-                raise ValueError("unterminated line")
-            rec = EvaluationRecord.from_json(json.loads(line))
-        except (ValueError, KeyError, TypeError) as exc:
-            if k >= len(lines) - 2 and (last or not any(x.strip() for x in lines[k + 1 :])):
-                break  # torn tail
-            raise DataFileError(str(path), f"line {k + 1}: not an evaluation record ({exc})") from exc
-        good.append(rec)
-        good_bytes += len(line) + 1
-    if good_bytes < len(raw):
-        with open(path, "r+b") as f:
-            f.truncate(good_bytes)
+    """Records of ``path`` (:func:`studio.jsonlog.read_jsonl`: a torn last line is cut off)."""
+    good = read_jsonl(path, EvaluationRecord.from_json)
     for i, r in enumerate(good):
         if r.index != i:
             raise DataFileError(str(path), f"record {i} has index {r.index}: the file is not one run's log")
@@ -523,6 +500,28 @@ class RunSummary:
         return f"{self.run_dir.name}: {self.evaluations}/{self.planned} evaluations, {best}"
 
 
+_LOG_SUMMARIES: dict[Path, tuple[tuple[int, int], tuple[int, float]]] = {}
+"""(size, mtime) -> (evaluations, best reward) of run logs already read (:func:`list_runs`
+is called on every side/task change in the studio; logs only grow)."""
+
+
+def _log_summary(run_dir: Path) -> tuple[int, float]:
+    """(evaluations, best reward) of a run folder's log, cached by its size and mtime."""
+    log = run_dir / "evaluations.jsonl"
+    try:
+        st = log.stat()
+    except FileNotFoundError:
+        return 0, -math.inf
+    key = (st.st_size, st.st_mtime_ns)
+    hit = _LOG_SUMMARIES.get(log)
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    history = load_run_history(run_dir)
+    out = (len(history.reward), float(history.reward.max()) if len(history.reward) else -math.inf)
+    _LOG_SUMMARIES[log] = (key, out)
+    return out
+
+
 def list_runs(runs_dir: str | Path, *, side: str | None = None, task: str | None = None) -> tuple[list[RunSummary], list[str]]:
     """The optimization runs directly inside ``runs_dir`` (newest folder name first),
     optionally only those of ``side`` and ``task``, and one message per folder that holds a
@@ -539,12 +538,12 @@ def list_runs(runs_dir: str | Path, *, side: str | None = None, task: str | None
             meta = read_run_meta(run_dir)
             if (side is not None and meta.get("side") != side) or (task is not None and meta.get("task") != task):
                 continue
-            history = load_run_history(run_dir)
+            evaluations, best = _log_summary(run_dir)
             seeds = tuple(serve_from_json(d, source=f"{run_dir / 'run.json'}: seeds[{i}]") for i, d in enumerate(meta.get("seeds", [])))
             runs.append(RunSummary(
                 run_dir=run_dir, side=meta["side"], task=str(meta["task"]), seed=int(meta["seed"]), population=int(meta["population"]),
                 iterations=int(meta["iterations"]), tosses=int(meta["tosses"]), seeds=seeds, limit_scale=LimitScale.from_json(meta["limit_scale"]),
-                evaluations=len(history.reward), best_reward=float(history.reward.max()) if len(history.reward) else -math.inf,
+                evaluations=evaluations, best_reward=best,
             ))  # fmt: skip
         except (DataFileError, KeyError, TypeError, ValueError) as exc:
             problems.append(str(exc) if isinstance(exc, DataFileError) else f"{run_dir / 'run.json'}: missing or malformed field ({exc!r})")
@@ -556,9 +555,7 @@ class _Log:
         self.f = open(path, "a", encoding="utf-8")
 
     def write(self, rec: EvaluationRecord) -> None:
-        self.f.write(json.dumps(asdict(rec), allow_nan=False) + "\n")
-        self.f.flush()
-        os.fsync(self.f.fileno())
+        write_line(self.f, asdict(rec))
 
     def close(self) -> None:
         self.f.close()

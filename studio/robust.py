@@ -12,9 +12,9 @@ the serve with step ``sigma``, minimizing
     -(legal count over the recorded tosses + 0.1 x mean reward over them)
     + spin deficit / SPIN_PER_TOSS
 
-where the spin deficit [rad/s] is how far the dominant spin component at the net crossing
-on the mean toss (top/back or side, the larger one of the starting serve) falls short of
-``keep_spin`` times the starting value (same sign). A candidate illegal on the mean toss
+where the spin deficit [rad/s] is how far the spin components at the net crossing on the
+mean toss (top/back and side, each one the starting serve has) fall short of ``keep_spin``
+times their starting values (same signs). A candidate illegal on the mean toss
 scores :data:`ILLEGAL_ON_MEAN`. The result is the best candidate without spin deficit, or
 the starting serve when none beats it: never worse than the start.
 
@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import threading
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
@@ -43,6 +42,7 @@ import numpy as np
 import numpy.typing as npt
 
 from studio.errors import DataFileError, InvalidInputError
+from studio.jsonlog import append_jsonl, read_jsonl
 from studio.serve import GENE_NAMES, GenomeBounds, HandServe, ServeParams
 
 ROBUST_SCHEMA = "serve-studio/robustify-run@1"
@@ -56,9 +56,13 @@ SPIN_PER_TOSS = 3.0
 choice: 10 rad/s of spin lost must buy more than three more legal tosses)."""
 ILLEGAL_ON_MEAN = 100.0
 """Objective of a candidate that is not legal on the mean toss (every other objective is
-below it: at most 20 + a few reward points, with the shipped tosses)."""
+below it: the spin penalty is capped at :data:`MAX_SPIN_PENALTY`)."""
+MAX_SPIN_PENALTY = 50.0
+"""Cap of the spin-deficit term (a serve whose spin turned round costs this, still less
+than one illegal on the mean toss)."""
 MIN_SPIN = 20.0
-"""Below this net spin [rad/s] the starting serve has no spin worth keeping: no constraint."""
+"""A net spin component of the starting serve below this [rad/s] is not worth keeping: no
+constraint on it."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,46 +111,47 @@ def robust_score(serve: HandServe, context: Any, *, task: str) -> RobustScore:
 
 @dataclass(frozen=True, slots=True)
 class SpinKeep:
-    """The spin constraint: ``sign * component >= floor`` at the net on the mean toss."""
+    """The spin constraint: for each kept component c, ``sign_c * value_c >= floor_c`` at
+    the net crossing on the mean toss."""
 
-    component: str
-    """"topspin" or "sidespin" (the starting serve's dominant one), or "" for none."""
-    sign: float
-    """+1 or -1: the starting serve's direction of it."""
-    floor: float
-    """Least magnitude kept [rad/s]."""
+    components: tuple[tuple[str, float, float], ...]
+    """(component "topspin" or "sidespin", sign +1 / -1, least magnitude [rad/s]) of each
+    component of the starting serve's net spin worth keeping (|value| >= :data:`MIN_SPIN`)."""
 
     def deficit(self, score: RobustScore) -> float:
-        """How far ``score`` falls short [rad/s] (inf without a net crossing)."""
-        if not self.component:
-            return 0.0
-        value = score.net_topspin if self.component == "topspin" else score.net_sidespin
-        if value is None:
-            return math.inf
-        return max(0.0, self.floor - self.sign * value)
+        """How far ``score`` falls short, summed over the components [rad/s] (inf without a
+        net crossing)."""
+        total = 0.0
+        for component, sign, floor in self.components:
+            value = score.net_topspin if component == "topspin" else score.net_sidespin
+            if value is None:
+                return math.inf
+            total += max(0.0, floor - sign * value)
+        return total
 
     def describe(self) -> str:
-        if not self.component:
+        if not self.components:
             return "no spin to keep"
-        name = {("topspin", 1.0): "topspin", ("topspin", -1.0): "backspin"}.get((self.component, self.sign), "sidespin")
-        return f"{name} at the net >= {self.floor:.0f} rad/s"
+        names = {("topspin", 1.0): "topspin", ("topspin", -1.0): "backspin", ("sidespin", 1.0): "sidespin (+)", ("sidespin", -1.0): "sidespin (-)"}
+        return " and ".join(f"{names[(c, sign)]} >= {floor:.0f}" for c, sign, floor in self.components) + " rad/s at the net"
 
 
 def spin_keep(start: RobustScore, keep: float) -> SpinKeep:
-    """The constraint for a starting serve: its dominant net spin component, ``keep`` of it."""
-    top, side = start.net_topspin or 0.0, start.net_sidespin or 0.0
-    component, value = ("topspin", top) if abs(top) >= abs(side) else ("sidespin", side)
-    if abs(value) < MIN_SPIN or keep == 0.0:
-        return SpinKeep("", 1.0, 0.0)
-    return SpinKeep(component, math.copysign(1.0, value), keep * abs(value))
+    """The constraint for a starting serve: ``keep`` of each of its net spin components
+    (top/back, side) of at least :data:`MIN_SPIN`, with its sign."""
+    out = []
+    for component, value in (("topspin", start.net_topspin), ("sidespin", start.net_sidespin)):
+        if value is not None and abs(value) >= MIN_SPIN and keep > 0.0:
+            out.append((component, math.copysign(1.0, value), keep * abs(value)))
+    return SpinKeep(tuple(out))
 
 
 def objective(score: RobustScore, keep: SpinKeep) -> float:
     """The value CMA-ES minimizes (module docstring)."""
     if not score.mean_legal:
         return ILLEGAL_ON_MEAN
-    deficit = keep.deficit(score)
-    return -(score.legal + 0.1 * score.mean_reward) + (deficit / SPIN_PER_TOSS if math.isfinite(deficit) else ILLEGAL_ON_MEAN)
+    penalty = min(keep.deficit(score) / SPIN_PER_TOSS, MAX_SPIN_PENALTY)
+    return -(score.legal + 0.1 * score.mean_reward) + penalty
 
 
 @dataclass(frozen=True)
@@ -171,43 +176,28 @@ class RobustifyResult:
     improved: bool
     """A candidate beat the starting serve."""
 
+    def summary(self) -> str:
+        """One paragraph for a person: what was kept, tried and found."""
 
-def _write_line(path: Path, doc: dict[str, Any]) -> None:
-    with open(path, "a", encoding="utf-8") as fh:
-        fh.write(json.dumps(doc, allow_nan=False) + "\n")
-        fh.flush()
-        os.fsync(fh.fileno())
+        def spin(sc: RobustScore) -> str:
+            top, side = ("-" if v is None else f"{v:+.0f}" for v in (sc.net_topspin, sc.net_sidespin))
+            return f"net spin top/back {top}, side {side} rad/s"
+
+        s0, s1 = self.start, self.best
+        head = f"{'Stopped' if self.stopped else 'Done'} after {self.evaluations} candidates, keeping {self.keep.describe()}."
+        start = f"Start: legal on {s0.legal}/{s0.tosses} recorded tosses{'' if s0.mean_legal else ', NOT legal on the mean toss'}, {spin(s0)}."
+        if not self.improved:
+            return f"{head} {start} No candidate beat it."
+        return f"{head} {start} Found: legal on {s1.legal}/{s1.tosses} recorded tosses, {spin(s1)}."
 
 
-def _read_log(path: Path) -> list[dict[str, Any]]:
-    """Logged evaluations; a torn last line (killed run) is cut off the file."""
-    if not path.exists():
-        return []
-    raw = path.read_bytes()
-    lines = raw.split(b"\n")
-    out: list[dict[str, Any]] = []
-    good = 0
-    for k, line in enumerate(lines):
-        if not line.strip():
-            good += len(line) + (k < len(lines) - 1)
-            continue
-        try:
-            if k == len(lines) - 1:
-                raise ValueError("unterminated line")
-            doc = json.loads(line)
-            if not isinstance(doc, dict) or not isinstance(doc.get("genome"), list) or len(doc["genome"]) != len(GENE_NAMES):
-                raise ValueError("not a robustify record")
-            float(doc["objective"])
-        except (ValueError, KeyError, TypeError) as exc:
-            if k >= len(lines) - 2 and not any(x.strip() for x in lines[k + 1 :]):
-                break  # torn tail
-            raise DataFileError(path, f"line {k + 1}: {exc}") from None
-        out.append(doc)
-        good += len(line) + 1
-    if good < len(raw):
-        with open(path, "r+b") as fh:
-            fh.truncate(good)
-    return out
+def _log_record(d: Any) -> dict[str, Any]:
+    """Validate one logged candidate (``index``, ``genome``, ``objective``, ``score``)."""
+    if not isinstance(d, dict) or not isinstance(d.get("genome"), list) or len(d["genome"]) != len(GENE_NAMES):
+        raise ValueError("not a robustify record")
+    d["objective"] = float(d["objective"])
+    d["score"] = RobustScore(**d["score"])
+    return d
 
 
 def robustify_serve(
@@ -236,13 +226,16 @@ def robustify_serve(
             topspin_velocity).
         keep_spin: fraction in [0, 1] of the starting serve's dominant net spin to keep.
         sigma: CMA-ES initial step on the normalized genome (0, 0.5].
-        evaluations: candidates to score (CMA-ES asks ``population`` at a time).
+        evaluations: candidates to score in all, rounded up to whole generations of
+            ``population`` (a resumed search counts the logged ones; logged candidates
+            beyond the budget are not used).
         population: CMA-ES population (>= 4).
         seed: CMA-ES seed.
         run_dir: folder for ``robustify.json`` and ``robustify.jsonl`` (optional).
         resume: continue the search logged in ``run_dir`` (same settings required).
         bounds: genome bounds (default: :func:`studio.optimizer.bounds_for_toss` of the side).
-        progress: called after each generation with (evaluations done, budget, best score).
+        progress: called after each generation with (candidates done, budget in whole
+            generations, best score so far).
         stop: when set, the search ends after the current generation.
         score: replaces :func:`robust_score` (tests).
 
@@ -253,17 +246,24 @@ def robustify_serve(
     import cma
 
     for name, value, ok in (
-        ("keep_spin", keep_spin, 0.0 <= keep_spin <= 1.0),
-        ("sigma", sigma, 0.0 < sigma <= 0.5),
-        ("evaluations", evaluations, evaluations >= 1),
-        ("population", population, population >= 4),
+        ("keep_spin", keep_spin, isinstance(keep_spin, (int, float)) and 0.0 <= keep_spin <= 1.0),
+        ("sigma", sigma, isinstance(sigma, (int, float)) and 0.0 < sigma <= 0.5),
+        ("evaluations", evaluations, isinstance(evaluations, int) and evaluations >= 1),
+        ("population", population, isinstance(population, int) and population >= 4),
+        ("seed", seed, isinstance(seed, int) and 0 <= seed < 2**31 - 1),
     ):
-        if not (isinstance(value, (int, float)) and math.isfinite(value) and ok):
-            raise InvalidInputError(f"robustify: {name} out of range, got {value!r} (keep_spin in [0, 1], sigma in (0, 0.5], evaluations >= 1, population >= 4)")
+        if isinstance(value, bool) or not ok:
+            raise InvalidInputError(
+                f"robustify: {name} out of range, got {value!r} (keep_spin in [0, 1], sigma in (0, 0.5], "
+                "whole numbers evaluations >= 1, population >= 4, 0 <= seed < 2**31 - 1)"
+            )
     if resume and run_dir is None:
         raise InvalidInputError("robustify: resume needs run_dir")
     task = task or serve.task or "topspin_velocity"
     if score is None:
+        from studio.reward import task_weights
+
+        task_weights(task)  # an unknown task fails before anything is loaded or written
         if context is None:
             from studio.evaluate import EvaluationContext
 
@@ -283,9 +283,13 @@ def robustify_serve(
         else:
             bounds = bounds_for_toss(context.toss_model(serve.side))
 
+    start_score = score(serve)
+    keep = spin_keep(start_score, keep_spin)
     meta = {
         "schema": ROBUST_SCHEMA, "serve": serve.to_json(), "task": task, "keep_spin": keep_spin, "sigma": sigma,
         "population": population, "seed": seed, "bounds": asdict(bounds),
+        # the models' verdict on the start: a resume on other tosses, robot or physics would mix objectives
+        "start": asdict(start_score),
     }  # fmt: skip
     log: list[dict[str, Any]] = []
     log_path: Path | None = None
@@ -302,18 +306,25 @@ def robustify_serve(
             for key, value in json.loads(json.dumps(meta)).items():
                 if not isinstance(old, dict) or old.get(key) != value:
                     raise DataFileError(meta_path, f"field {key!r}: the logged search has {old.get(key) if isinstance(old, dict) else old!r}, this call {value!r}")
-            log = _read_log(log_path)
+            log = read_jsonl(log_path, _log_record)
         elif log_path.exists() and log_path.stat().st_size > 0:
             raise InvalidInputError(f"{log_path} already holds a search: pass resume=True or use another folder")
         meta_path.write_text(json.dumps(meta, indent=2), encoding="utf-8")
 
-    start_score = score(serve)
-    keep = spin_keep(start_score, keep_spin)
     low, high = bounds.lows_highs()
-    z0 = np.clip(serve.params.normalize(bounds), 0.0, 1.0)
-    # cma's seed 0 means "random": seed + 1 keeps seed 0 reproducible
-    es = cma.CMAEvolutionStrategy(z0, sigma, {"popsize": population, "seed": seed + 1, "bounds": [0.0, 1.0], "verbose": -9})
-    best_serve, best_score, best_obj = serve, start_score, objective(start_score, keep) if keep.deficit(start_score) == 0 else math.inf
+    z0 = np.clip(serve.params.normalize(bounds), 0.0, 1.0)  # a start outside the bounds: the nearest genome
+    # CMA-ES draws from its own generator (cma would reseed and use numpy's global one);
+    # numpy's global state is restored around every call into cma all the same
+    rng = np.random.default_rng(seed)
+    saved = np.random.get_state()
+    try:
+        es = cma.CMAEvolutionStrategy(
+            z0, sigma, {"popsize": population, "seed": seed + 1, "bounds": [0.0, 1.0], "verbose": -9, "randn": lambda *shape: rng.standard_normal(shape)}
+        )  # fmt: skip
+    finally:
+        np.random.set_state(saved)
+    budget = -(-evaluations // population) * population  # whole generations
+    best_serve, best_score, best_obj = serve, start_score, objective(start_score, keep)
     done = 0
     stopped = False
 
@@ -324,26 +335,34 @@ def robustify_serve(
         if stop is not None and stop.is_set():
             stopped = True
             break
-        Z = [np.clip(np.asarray(z, dtype=float), 0.0, 1.0) for z in es.ask()]
+        saved = np.random.get_state()
+        try:
+            Z = [np.clip(np.asarray(z, dtype=float), 0.0, 1.0) for z in es.ask()]
+        finally:
+            np.random.set_state(saved)
         values = []
         for z in Z:
             if done < len(log):  # replay
                 rec = log[done]
-                if not np.allclose(rec["genome"], z, rtol=0, atol=1e-9):
+                if rec.get("index") != done or not np.allclose(rec["genome"], z, rtol=0, atol=1e-9):
                     raise DataFileError(log_path, f"line {done + 1}: the logged candidate differs from the replayed one (not this search's log)")
-                values.append(float(rec["objective"]))
-                sc = RobustScore(**rec["score"])
+                values.append(rec["objective"])
+                sc = rec["score"]
             else:
                 sc = score(candidate(z))
                 values.append(objective(sc, keep))
                 if log_path is not None:
-                    _write_line(log_path, {"index": done, "genome": [float(v) for v in z], "objective": values[-1], "score": asdict(sc)})
+                    append_jsonl(log_path, {"index": done, "genome": [float(v) for v in z], "objective": values[-1], "score": asdict(sc)})
             if keep.deficit(sc) == 0 and values[-1] < best_obj:
                 best_serve, best_score, best_obj = candidate(z), sc, values[-1]
             done += 1
-        es.tell([list(z) for z in Z], values)
+        saved = np.random.get_state()
+        try:
+            es.tell([list(z) for z in Z], values)
+        finally:
+            np.random.set_state(saved)
         if progress is not None:
-            progress(done, evaluations, best_score)
+            progress(done, budget, best_score)
 
     improved = best_serve is not serve
     if improved:

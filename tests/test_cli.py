@@ -114,7 +114,7 @@ def test_robustify_reports_and_writes_only_an_improvement(capsys: pytest.Capture
     src.write_text((EXAMPLES / "sidespin_left.json").read_text())
     code = main(["robustify", str(src), "--evaluations", "12", "--run-dir", str(tmp_path / "run")])
     out = capsys.readouterr().out
-    assert "start: legal on 12/20 recorded tosses (legal on the mean toss)" in out and "kept: sidespin at the net >= 238 rad/s" in out
+    assert "Start: legal on 12/20 recorded tosses, net spin" in out and "keeping topspin >= 135 and sidespin (-) >= 238 rad/s at the net" in out
     written = tmp_path / "serve_robust.json"
     assert (code == 0) == written.exists()  # written only when a candidate beat the start
     assert len((tmp_path / "run" / "robustify.jsonl").read_text().splitlines()) == 12

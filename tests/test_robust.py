@@ -41,17 +41,19 @@ class Fake:
 
 
 def test_spin_keep_and_objective() -> None:
-    back = RobustScore(True, 5, 20, 0.2, -80.0, 30.0)
+    back = RobustScore(True, 5, 20, 0.2, -80.0, 10.0)
     keep = spin_keep(back, 0.9)
-    assert (keep.component, keep.sign, keep.floor) == ("topspin", -1.0, pytest.approx(72.0))
-    assert keep.describe() == "backspin at the net >= 72 rad/s"
+    assert keep.components == (("topspin", -1.0, pytest.approx(72.0)),)  # 10 rad/s of side: not worth keeping
+    assert keep.describe() == "backspin >= 72 rad/s at the net"
     assert keep.deficit(back) == 0.0 and keep.deficit(RobustScore(True, 5, 20, 0.2, -60.0, 0.0)) == pytest.approx(12.0)
     assert keep.deficit(RobustScore(True, 5, 20, 0.2, None, None)) == math.inf
     assert objective(back, keep) == pytest.approx(-(5 + 0.02))
     assert objective(RobustScore(True, 9, 20, 0.0, -60.0, 0.0), keep) == pytest.approx(-9 + 4.0)  # 12 rad/s short
     assert objective(RobustScore(False, 0, 20, -3.0, -80.0, 0.0), keep) == ILLEGAL_ON_MEAN
-    side = spin_keep(RobustScore(True, 5, 20, 0.2, 40.0, -200.0), 0.5)
-    assert (side.component, side.sign, side.floor) == ("sidespin", -1.0, 100.0)
+    both = spin_keep(RobustScore(True, 5, 20, 0.2, 210.0, -120.0), 0.5)  # topspin with sidespin: both kept
+    assert both.components == (("topspin", 1.0, 105.0), ("sidespin", -1.0, 60.0))
+    assert both.describe() == "topspin >= 105 and sidespin (-) >= 60 rad/s at the net"
+    assert both.deficit(RobustScore(True, 5, 20, 0.2, 200.0, -40.0)) == pytest.approx(20.0)  # the side lost
     assert spin_keep(RobustScore(True, 5, 20, 0.2, 10.0, 5.0), 0.9).describe() == "no spin to keep"
 
 
@@ -115,7 +117,11 @@ def test_stop_then_resume_equals_the_uninterrupted_search(tmp_path: Path) -> Non
 
 @pytest.mark.parametrize(
     "kw,name",
-    [({"keep_spin": 1.5}, "keep_spin"), ({"sigma": 0.0}, "sigma"), ({"sigma": math.nan}, "sigma"), ({"evaluations": 0}, "evaluations"), ({"population": 2}, "population"), ({"resume": True}, "run_dir")],
+    [
+        ({"keep_spin": 1.5}, "keep_spin"), ({"sigma": 0.0}, "sigma"), ({"sigma": math.nan}, "sigma"), ({"evaluations": 0}, "evaluations"),
+        ({"evaluations": True}, "evaluations"), ({"population": 2}, "population"), ({"population": 6.5}, "population"), ({"seed": -1}, "seed"),
+        ({"seed": 2**40}, "seed"), ({"resume": True}, "run_dir"),
+    ],
 )
 def test_bad_settings_are_rejected_by_name(kw: dict, name: str) -> None:
     with pytest.raises(InvalidInputError, match=name):
@@ -129,5 +135,41 @@ def test_real_search_on_an_example_keeps_its_spin_and_legality() -> None:
     res = robustify_serve(serve, context=EvaluationContext.default(), evaluations=24, sigma=0.05)
     assert res.start.mean_legal and res.start.tosses == 20
     assert res.best.legal >= res.start.legal and res.best.mean_legal
-    assert res.keep.component == "topspin" and res.keep.sign == -1.0  # a backspin serve stays one
+    assert res.keep.components[0][:2] == ("topspin", -1.0)  # a backspin serve stays one
     assert res.keep.deficit(res.best) == 0.0
+
+
+def test_unknown_task_fails_before_anything_is_loaded(tmp_path: Path) -> None:
+    with pytest.raises(InvalidInputError, match="task"):
+        robustify_serve(START, task="no-such-task", bounds=BOUNDS, run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def test_numpy_global_random_state_is_left_alone() -> None:
+    np.random.seed(123)
+    expected = np.random.rand(3)
+    np.random.seed(123)
+    a = robustify_serve(START, bounds=BOUNDS, evaluations=36, score=Fake())
+    np.testing.assert_array_equal(np.random.rand(3), expected)
+    np.random.seed(999)  # and the search does not depend on it
+    b = robustify_serve(START, bounds=BOUNDS, evaluations=36, score=Fake())
+    assert a.serve == b.serve and a.best == b.best
+
+
+def test_spin_turned_round_costs_less_than_illegal_on_the_mean_toss() -> None:
+    keep = spin_keep(RobustScore(True, 5, 20, 0.0, -300.0, 0.0), 0.9)
+    reversed_spin = RobustScore(True, 0, 20, -2.0, +300.0, 0.0)
+    assert objective(reversed_spin, keep) < ILLEGAL_ON_MEAN
+    assert objective(RobustScore(True, 0, 20, -2.0, None, None), keep) < ILLEGAL_ON_MEAN
+
+
+def test_resume_under_other_models_is_refused(tmp_path: Path) -> None:
+    robustify_serve(START, bounds=BOUNDS, evaluations=12, score=Fake(), run_dir=tmp_path)
+
+    class Other(Fake):  # e.g. other toss recordings: the start scores differently
+        def __call__(self, serve: HandServe) -> RobustScore:
+            sc = super().__call__(serve)
+            return RobustScore(sc.mean_legal, max(0, sc.legal - 1), sc.tosses, sc.mean_reward, sc.net_topspin, sc.net_sidespin)
+
+    with pytest.raises(DataFileError, match="field 'start'"):
+        robustify_serve(START, bounds=BOUNDS, evaluations=24, score=Other(), run_dir=tmp_path, resume=True)
