@@ -570,7 +570,7 @@ class StudioApp:
                 self.load(HandServe(name=f"{task} best so far", side=side, params=params, task=task, limit_scale=scale))
 
         try:
-            seeds = list(run.seeds) if run is not None else self.seeds_for(side)
+            seeds = [] if run is not None else self.seeds_for(side)  # a resumed run takes its own from run.json
             self.opt_md.content = f"resuming `{run_dir.name}` ({run.evaluations} evaluations logged) ..." if run is not None else f"evaluating {len(seeds)} seed(s) ..."
             result = optimize_serve(
                 side=side,
@@ -667,10 +667,7 @@ class StudioApp:
         from studio.selection import serve_cluster, usage_count
 
         try:
-            library = ServeLibrary(self.library_dir)
-            if self._match_serve not in {e.id for e in library.entries()}:
-                self._match_serve = None  # pruned or removed meanwhile: the log's last serve counts
-            entry = next_serve(library, self._match_serve)
+            entry = next_serve(ServeLibrary(self.library_dir), self._match_serve)  # a pruned previous serve counts as none
         except StudioError as err:
             self.match_md.content = f"**No serve:** {err}"
             return

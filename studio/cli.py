@@ -285,7 +285,7 @@ def _library_select(args: argparse.Namespace) -> int:
     from studio.match import next_serve
     from studio.selection import serve_cluster, usage_count
 
-    entry = next_serve(ServeLibrary(args.dir), args.previous)
+    entry = next_serve(ServeLibrary(args.dir), args.previous, strict=True)
     print(f"{entry.id}\t{entry.data['name']}\t{serve_cluster(entry)}\tused {usage_count(entry)}")
     return 0
 

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -37,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from studio.errors import DataFileError, InvalidInputError
+from studio.jsonlog import append_jsonl
 from studio.library import LibraryEntry, ServeLibrary
 
 MATCH_LOG = "matches.jsonl"
@@ -168,12 +168,8 @@ def append_point(path: str | Path, point: Point) -> None:
     """Append one point to the log: validated, one write of a whole line, flushed and fsynced."""
     path = Path(path)
     point_from_json(point.to_json(), where=f"{path}: new point")
-    line = json.dumps(point.to_json(), ensure_ascii=False) + "\n"
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "a", encoding="utf-8") as fh:
-        fh.write(line)
-        fh.flush()
-        os.fsync(fh.fileno())
+    append_jsonl(path, point.to_json())
 
 
 def record_point(
@@ -226,20 +222,23 @@ def last_robot_serve(points: Sequence[Point]) -> str | None:
     return next((p.serve for p in reversed(points) if p.server == "robot"), None)
 
 
-def next_serve(library: ServeLibrary, previous_id: str | None = None) -> LibraryEntry:
+def next_serve(library: ServeLibrary, previous_id: str | None = None, *, strict: bool = False) -> LibraryEntry:
     """The robot's next serve by the paper's strategy (:func:`studio.selection.select_next`):
     the least-used legal serve of a cluster other than the previous serve's. Previous:
-    ``previous_id``, else the robot's last serve in the match log when it is still in the
-    library (a match goes on across restarts); usage from the entries' counters (kept in
-    step with the log by :func:`record_point`).
+    ``previous_id``, else the robot's last serve in the match log; one no longer in the
+    library (pruned meanwhile) counts as none, unless ``strict`` (then InvalidInputError
+    names it). Usage from the entries' counters (kept in step with the log by
+    :func:`record_point`).
     """
     from studio.selection import select_next
 
     entries = library.entries()
+    ids = {e.id for e in entries}
     if previous_id is None:
-        last = last_robot_serve(load_points(library.folder / MATCH_LOG))
-        previous_id = last if last in {e.id for e in entries} else None
-    return select_next(entries, previous_id)
+        previous_id = last_robot_serve(load_points(library.folder / MATCH_LOG))
+    elif strict and previous_id not in ids:
+        raise InvalidInputError(f"previous serve {previous_id!r} is not in the library {library.folder}")
+    return select_next(entries, previous_id if previous_id in ids else None)
 
 
 @dataclass(frozen=True)

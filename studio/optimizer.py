@@ -480,8 +480,9 @@ class RunSummary:
     """HEBO batches asked for by the last call."""
     tosses: int
     """Tosses per evaluation."""
-    seeds: tuple[HandServe, ...]
-    """The hand-designed seed serves the run observed first."""
+    seeds: int
+    """Hand-designed seed serves the run observed first (a resume takes them from its
+    ``run.json``)."""
     limit_scale: LimitScale
     """Dynamic limit expansion of the run."""
     evaluations: int
@@ -492,7 +493,7 @@ class RunSummary:
     @property
     def planned(self) -> int:
         """Evaluations of the whole run: seeds + iterations x population."""
-        return len(self.seeds) + self.iterations * self.population
+        return self.seeds + self.iterations * self.population
 
     def label(self) -> str:
         """One line for a list: folder, progress and best reward."""
@@ -526,8 +527,6 @@ def list_runs(runs_dir: str | Path, *, side: str | None = None, task: str | None
     """The optimization runs directly inside ``runs_dir`` (newest folder name first),
     optionally only those of ``side`` and ``task``, and one message per folder that holds a
     ``run.json`` but cannot be read (file and field named). An absent folder has no runs."""
-    from studio.serve import serve_from_json
-
     runs: list[RunSummary] = []
     problems: list[str] = []
     folder = Path(runs_dir)
@@ -539,10 +538,9 @@ def list_runs(runs_dir: str | Path, *, side: str | None = None, task: str | None
             if (side is not None and meta.get("side") != side) or (task is not None and meta.get("task") != task):
                 continue
             evaluations, best = _log_summary(run_dir)
-            seeds = tuple(serve_from_json(d, source=f"{run_dir / 'run.json'}: seeds[{i}]") for i, d in enumerate(meta.get("seeds", [])))
             runs.append(RunSummary(
                 run_dir=run_dir, side=meta["side"], task=str(meta["task"]), seed=int(meta["seed"]), population=int(meta["population"]),
-                iterations=int(meta["iterations"]), tosses=int(meta["tosses"]), seeds=seeds, limit_scale=LimitScale.from_json(meta["limit_scale"]),
+                iterations=int(meta["iterations"]), tosses=int(meta["tosses"]), seeds=len(meta.get("seeds", [])), limit_scale=LimitScale.from_json(meta["limit_scale"]),
                 evaluations=evaluations, best_reward=best,
             ))  # fmt: skip
         except (DataFileError, KeyError, TypeError, ValueError) as exc:

@@ -278,6 +278,9 @@ def test_record_point_and_next_serve_continue_a_match_from_the_log(tmp_path: Pat
     second = next_serve(lib)  # a later session: the previous serve comes from the log
     assert second.id != "side" and second.id == "back"
     assert next_serve(lib, "back").id == "top"  # an explicit previous serve wins over the log
+    assert next_serve(lib, "pruned-meanwhile").id == "back"  # unknown: no previous serve (least used, then reward)
+    with pytest.raises(InvalidInputError, match="'pruned-meanwhile' is not in the library"):
+        next_serve(lib, "pruned-meanwhile", strict=True)  # the CLI's --previous
     for bad, match in (
         (dict(server="robot", winner="robot"), "required when the robot serves"),
         (dict(server="robot", serve="nope", winner="robot"), "'nope' not found"),
