@@ -31,6 +31,7 @@ def test_example_runs(path: Path, tmp_path: Path) -> None:
     extra = {
         "01_ball_spin_trajectories": [str(tmp_path / "spin.png")],
         "04_optimize_serve": ["--iterations", "1", "--population", "4", "--run-dir", str(tmp_path / "run")],
+        "05_robustify_serve": ["--evaluations", "24", "--run-dir", str(tmp_path / "run")],
     }.get(path.stem, [])
     out = _run([str(path), *extra], cwd=tmp_path)
     if path.stem == "01_ball_spin_trajectories":
@@ -42,3 +43,6 @@ def test_example_runs(path: Path, tmp_path: Path) -> None:
     elif path.stem == "04_optimize_serve":
         assert "5 evaluations, then 9 after the resume" in out
         assert sum(1 for _ in open(tmp_path / "run" / "evaluations.jsonl")) == 9
+    elif path.stem == "05_robustify_serve":
+        assert "stopped after 12 candidates; resuming" in out and "24 candidates logged" in out
+        assert "Start: legal on 12/20 recorded tosses" in out
