@@ -11,6 +11,10 @@ from collections.abc import Callable, Sequence
 
 Handler = Callable[[argparse.Namespace], int]
 
+ROBUSTIFY_HELP = (
+    "then search N candidates around the chosen serve for one legal on more recorded tosses, keeping its spin "
+    "(serve-studio robustify; ~0.1 s a candidate, logged in <run>/robustify/ and resumed; default 0: off)"
+)
 LIMIT_SCALE_HELP = (
     "dynamic limit expansion: a factor on the joint acceleration and jerk limits (e.g. 1.3), "
     "or velocity=..,acceleration=..,jerk=.. factors"
@@ -74,6 +78,8 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     from studio.optimizer import optimize_serve
     from studio.serve import LimitScale, load_serve
 
+    if args.robustify < 0:
+        raise InvalidInputError(f"--robustify must be a number of candidates >= 0, got {args.robustify}")
     seeds = [load_serve(p) for p in args.seeds]
     limit_scale = LimitScale.parse(args.limit_scale) if args.limit_scale is not None else None
     if limit_scale is None and not args.resume and seeds:  # the seeds' own scale
@@ -115,6 +121,14 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     s = result.summary
     print(f"chosen serve: mean reward {s.mean_reward:+.3f} on {len(s.rewards)} fresh tosses, legal on {100 * s.legal_fraction:.0f} % ({'legal' if s.legal else 'not legal'})")
     best = replace(result.best, name=args.name or f"{args.task} {args.side} seed {args.seed}", task=args.task, notes=f"HEBO run {run_dir}, seed {args.seed}")
+    if args.robustify:
+        from studio.robust import META_NAME, robustify_serve
+
+        folder = run_dir / "robustify"
+        print(f"robustify: {args.robustify} candidates around the chosen serve ...", flush=True)
+        rob = robustify_serve(best, task=args.task, evaluations=args.robustify, run_dir=folder, resume=(folder / META_NAME).exists())
+        print(rob.summary())
+        best = rob.serve
     out = run_dir / "best_serve.json"
     from studio.serve import save_serve
 
@@ -177,6 +191,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         task=args.task, count=args.count, side=args.side, iterations=args.iterations, population=args.population, tosses=args.tosses,
         seed=args.seed, workers=args.workers, seeds=tuple(load_serve(p) for p in args.seeds), runs_dir=Path(args.runs or f"runs/train-{args.task}"),
         overlap=False if args.sequential else None, limit_scale=LimitScale.parse(args.limit_scale) if args.limit_scale is not None else LimitScale(),
+        robustify=args.robustify,
     )  # fmt: skip
 
     def progress(r: TrainedServe, total: int) -> None:
@@ -386,6 +401,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--export", default=None, metavar="DIR", help="export the chosen serve to this serve library")
     p.add_argument("--sequential", action="store_true", help="suggest each batch after the previous one is evaluated (default with 2+ workers: the next batch is suggested while the workers evaluate)")
     p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default: the seed serves' own scale, else 1; on --resume: the run's own)")
+    p.add_argument("--robustify", type=int, default=0, metavar="N", help=ROBUSTIFY_HELP)
     handlers["optimize"] = _cmd_optimize
 
     p = sub.add_parser("train", help="train COUNT serves for a task (one HEBO run each) into a library, print a Table II-like summary")
@@ -403,6 +419,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--runs", default=None, help="folder of the run folders (default runs/train-<task>); rerun to resume")
     p.add_argument("--sequential", action="store_true", help="no overlapped suggestions (see optimize --sequential)")
     p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default 1; resumed runs must match)")
+    p.add_argument("--robustify", type=int, default=0, metavar="N", help=ROBUSTIFY_HELP)
     p.add_argument("--ray", default=None, metavar="ADDRESS", help="run the runs as tasks on a Ray cluster (ray.init address, e.g. auto or ray://host:10001; 'local' starts a local instance)")
     handlers["train"] = _cmd_train
 

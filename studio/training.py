@@ -94,6 +94,10 @@ class TrainConfig:
     limit_scale: LimitScale = field(default_factory=LimitScale)
     """Dynamic limit expansion of every run (``optimize_serve``'s ``limit_scale``); a
     resumed run must have been started with the same scale."""
+    robustify: int = 0
+    """Candidates of the local robustness search (:func:`studio.robust.robustify_serve`)
+    run on each chosen serve before it is judged and exported (0: none). Logged in
+    ``<run>/robustify/`` and resumed with the run."""
 
     def __post_init__(self) -> None:
         from studio.reward import task_weights
@@ -101,6 +105,8 @@ class TrainConfig:
         task_weights(self.task)
         if self.count < 1 or self.iterations < 0 or self.population < 1 or self.tosses < 1 or self.workers < 1:
             raise InvalidInputError(f"train: count, population, tosses and workers must be >= 1 and iterations >= 0 (got {self.count}, {self.population}, {self.tosses}, {self.workers}, {self.iterations})")
+        if isinstance(self.robustify, bool) or not isinstance(self.robustify, int) or self.robustify < 0:
+            raise InvalidInputError(f"train: robustify must be a whole number of candidates >= 0, got {self.robustify!r}")
         if self.side not in ("right", "left", "both"):
             raise InvalidInputError(f"train: side must be right, left or both, got {self.side!r}")
 
@@ -191,6 +197,11 @@ def _finish(index: int, run_dir: Path, seed: int, best: HandServe | None, cfg: T
 
     if best is None:
         return TrainedServe(index, run_dir, False, -math.inf, {}, None, seconds, "nothing evaluated")
+    if cfg.robustify:
+        from studio.robust import META_NAME, robustify_serve
+
+        folder = run_dir / "robustify"
+        best = robustify_serve(best, context=context, task=cfg.task, evaluations=cfg.robustify, run_dir=folder, resume=(folder / META_NAME).exists()).serve
     ev = evaluate_serve(best, context, task=cfg.task)
     row = _row(ev, cfg.task) if ev.legal else {}
     entry_id = library.add(ev, provenance={"kind": "hebo", "run": str(run_dir), "seed": seed}, task=cfg.task, preparation=context.preparation(best.side)).id if ev.legal else None

@@ -49,6 +49,8 @@ def test_optimize_tiny_budget_writes_run_and_best(capsys: pytest.CaptureFixture[
     assert "chosen serve" in out and code in (0, 1)
     assert (run / "best_serve.json").exists() and (run / "evaluations.jsonl").exists()
     assert len((run / "evaluations.jsonl").read_text().splitlines()) == 3  # the seed + 2 suggestions
+    assert main(["optimize", str(EXAMPLES / "topspin_right.json"), "--robustify", "-1"]) == 2
+    assert "--robustify must be a number of candidates >= 0" in capsys.readouterr().err
 
 
 def test_limit_scale_option_evaluates_exports_and_optimizes(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
@@ -76,12 +78,14 @@ def test_limit_scale_option_evaluates_exports_and_optimizes(capsys: pytest.Captu
 def test_train_exports_legal_serves_and_resumes(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     args = ["train", "--task", "topspin_velocity", "--count", "1", "--side", "right", "--library", str(tmp_path / "lib"),
             "--runs", str(tmp_path / "runs"), "--iterations", "1", "--population", "2", "--tosses", "2", "--workers", "1",
-            "--seeds", str(EXAMPLES / "topspin_right.json")]
+            "--seeds", str(EXAMPLES / "topspin_right.json"), "--robustify", "12"]
     assert main(args) == 0
     out = capsys.readouterr().out
     assert "1 legal of 1 trained serves" in out and "top/back [rad/s]" in out
     (entry,) = ServeLibrary(tmp_path / "lib").entries()
     assert entry.data["provenance"]["kind"] == "hebo" and entry.data["legal"] is True
+    robust_log = tmp_path / "runs" / "000-right-seed0" / "robustify" / "robustify.jsonl"
+    assert len(robust_log.read_text().splitlines()) == 12  # the chosen serve was robustified before export
     assert main(args) == 0  # a second invocation finds the finished run and trains nothing
     assert "already trained" in capsys.readouterr().out
     assert len(ServeLibrary(tmp_path / "lib").entries()) == 1

@@ -21,7 +21,7 @@ def test_jobs_alternate_sides_and_seeds(tmp_path: Path) -> None:
     assert {side for _, side, _, _ in TrainConfig(task="backspin", count=2, side="left").jobs()} == {"left"}
 
 
-@pytest.mark.parametrize("kw", [{"task": "nope"}, {"task": "aiming", "count": 0}, {"task": "aiming", "side": "up"}, {"task": "aiming", "tosses": 0}])
+@pytest.mark.parametrize("kw", [{"task": "nope"}, {"task": "aiming", "count": 0}, {"task": "aiming", "side": "up"}, {"task": "aiming", "tosses": 0}, {"task": "aiming", "robustify": -1}, {"task": "aiming", "robustify": 2.5}])
 def test_bad_configuration_is_rejected(kw: dict) -> None:
     with pytest.raises(InvalidInputError):
         TrainConfig(**kw)
