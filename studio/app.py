@@ -186,6 +186,7 @@ class StudioApp:
                 data=(np.zeros(1), np.zeros(1)),
                 series=({"label": "evaluations"}, {"label": "best reward", "stroke": "green", "width": 2}),
                 title="convergence",
+                scales={"x": {"time": False}},  # evaluations, not a date axis
                 aspect=1.6,
             )
         with tabs.add_tab("Match"):
