@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from studio.errors import InvalidInputError, StudioError
-from studio.evaluate import Evaluation, EvaluationContext, evaluate_serve, report_markdown, scene_frame
+from studio.evaluate import Evaluation, EvaluationContext, effort_report, evaluate_serve, report_markdown, scene_frame
 from studio.reward import TASKS
 from studio.scene import StudioScene
 from studio.serve import LIMIT_SCALE_RANGE, GenomeBounds, HandServe, LimitScale, ServeParams, load_serve, save_serve, serve_from_json
@@ -479,13 +479,14 @@ class StudioApp:
             return
         evaluation = result.value
         frame = scene_frame(evaluation, self.context)
+        efforts = effort_report(evaluation.motion, self.context.robot)  # the worker's thread, as the frame
         with self._lock:
             self.last = evaluation
             self.scene.show(frame)
             status, checks, metrics = report_markdown(evaluation)
             self.status_md.content = status + f"\n\n_evaluated in {1000 * result.seconds:.0f} ms_"
             self.checks_md.content = checks
-            self.metrics_md.content = metrics
+            self.metrics_md.content = metrics + (f"\n\n{efforts.markdown()}" if efforts is not None else "")
             pb = frame.playback
             if pb is not None and len(pb.t):
                 self.time.max = float(pb.t[-1])

@@ -33,7 +33,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     from dataclasses import replace
 
-    from studio.evaluate import EvaluationContext, evaluate_robust, evaluate_serve, report_markdown
+    from studio.evaluate import EvaluationContext, effort_report, evaluate_robust, evaluate_serve, report_markdown
     from studio.serve import LimitScale, load_serve
 
     serve = load_serve(args.serve)
@@ -48,6 +48,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     else:
         evaluation = evaluate_serve(serve, context, task=task, mujoco=args.mujoco)
         payload = evaluation.to_json()
+    efforts = effort_report(evaluation.motion, context.robot)
+    payload["efforts"] = efforts.to_json() if efforts is not None else None
     if args.export:
         from studio.library import ServeLibrary
 
@@ -59,6 +61,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         status, checks, metrics = report_markdown(evaluation)
         print(f"{serve.name} ({serve.side} toss, task {task})\n")
         print(status, checks, metrics, sep="\n\n")
+        if efforts is not None:
+            print("\n" + efforts.markdown())
         if args.tosses > 1:
             print(f"\nover {args.tosses} recorded tosses: legal fraction {payload['legal_fraction']:.2f}, mean reward {payload['reward']:+.3f}, legal: {payload['legal']}")
         if args.export:

@@ -240,6 +240,60 @@ class ServeMotion:
 
 
 @dataclass(frozen=True)
+class EffortReport:
+    """Peak joint forces/torques of a serve's motion (preparation excluded): inverse
+    dynamics (:meth:`studio.robot.Robot.joint_efforts`) of the predicted joint trajectory,
+    speeds by central differences at 1 kHz, accelerations from the joint dynamics model
+    q'' = wn^2 (u - q) - 2 zeta wn q'. The paper raised its acceleration and jerk limits
+    once measured torques showed headroom: this is the same check on the model, against
+    the robot's nominal efforts (stand-in values, not data-sheet figures)."""
+
+    names: tuple[str, ...]
+    """Joint names (8)."""
+    peak: npt.NDArray[np.float64]
+    """Largest |force/torque| per joint (8,) [N | N m]."""
+    at: npt.NDArray[np.float64]
+    """Time of each peak on the toss clock (8,) [s]."""
+    limit: npt.NDArray[np.float64]
+    """Nominal effort per joint (8,) [N | N m]."""
+
+    @property
+    def usage(self) -> npt.NDArray[np.float64]:
+        """peak / limit (8,) [-]."""
+        return self.peak / self.limit
+
+    @property
+    def worst(self) -> tuple[str, float]:
+        """(joint, usage) of the most used joint."""
+        k = int(np.argmax(self.usage))
+        return self.names[k], float(self.usage[k])
+
+    def to_json(self) -> dict[str, Any]:
+        return {"names": list(self.names), "peak": _vec(self.peak), "at": _vec(self.at), "limit": _vec(self.limit), "usage": _vec(self.usage)}
+
+    def markdown(self) -> str:
+        name, use = self.worst
+        rows = "\n".join(f"| {n} | {p:.1f} | {lim:g} | {100 * p / lim:.0f} % | {t:.3f} |" for n, p, lim, t in zip(self.names, self.peak, self.limit, self.at))
+        return (
+            f"**Joint efforts** (inverse dynamics, nominal limits): most used {name} at {100 * use:.0f} %\n\n"
+            "| joint | peak [N, N m] | nominal | usage | at [s] |\n| --- | --- | --- | --- | --- |\n" + rows
+        )
+
+
+def effort_report(motion: ServeMotion, robot: Robot) -> EffortReport | None:
+    """The peak joint efforts of ``motion`` (toss, strike and return; None without a motion)."""
+    if motion.t is None or motion.u is None or motion.q is None or len(motion.t) < 3:
+        return None
+    t, u, q = np.asarray(motion.t), np.asarray(motion.u), np.asarray(motion.q)
+    dyn = robot.dynamics
+    qd = np.gradient(q, t, axis=0)
+    qdd = dyn.wn**2 * (u - q) - 2.0 * dyn.zeta * dyn.wn * qd
+    tau = np.abs(robot.joint_efforts(q, qd, qdd))
+    k = np.argmax(tau, axis=0)
+    return EffortReport(robot.joint_names, tau[k, np.arange(tau.shape[1])], t[k], robot.effort_limits)
+
+
+@dataclass(frozen=True)
 class Evaluation:
     """Everything one serve evaluation produced (on one toss)."""
 

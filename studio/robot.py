@@ -445,6 +445,24 @@ class Robot:
         nu = pin.getFrameVelocity(self.model, self.data, fid, pin.LOCAL_WORLD_ALIGNED)
         return np.array(nu.linear), np.array(nu.angular)
 
+    @property
+    def effort_limits(self) -> FloatArray:
+        """Nominal joint forces/torques (8,) [N | N m] from the TOML (``effort``: the URDF's
+        attribute; stand-in values, not data-sheet figures)."""
+        return np.array([j.effort for j in self.spec.actuated_joints])
+
+    def joint_efforts(self, q: npt.ArrayLike, qd: npt.ArrayLike, qdd: npt.ArrayLike) -> FloatArray:
+        """Inverse dynamics (pinocchio's RNEA on the URDF's rigid links, gravity -Z): the joint
+        forces/torques (N, 8) [N | N m] that give accelerations qdd at (q, qd), each (N, 8).
+        Not included: drive inertia (the MJCF's armature), friction, the ball."""
+        Q, V, A = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (q, qd, qdd))
+        if not (Q.shape == V.shape == A.shape and Q.shape[1:] == (NQ,)):
+            raise InvalidInputError(f"joint_efforts: q, qd, qdd must all be (N, {NQ}), got {Q.shape}, {V.shape}, {A.shape}")
+        if not (np.all(np.isfinite(Q)) and np.all(np.isfinite(V)) and np.all(np.isfinite(A))):
+            raise InvalidInputError("joint_efforts: q, qd and qdd must be finite")
+        model, data = self.model, self.data
+        return np.array([pin.rnea(model, data, Q[k], V[k], A[k]) for k in range(Q.shape[0])]).reshape(-1, NQ)
+
 
 def _limits_from_spec(spec: RobotSpec) -> JointLimits:
     js = spec.actuated_joints

@@ -45,6 +45,11 @@ def app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[StudioApp]:
     server.stop()
 
 
+def test_metrics_tab_shows_the_joint_efforts(app: StudioApp) -> None:
+    assert app.worker.wait_idle(120) and app.last is not None
+    assert "**Joint efforts**" in app.metrics_md.content and "| a2 |" in app.metrics_md.content
+
+
 def test_non_finite_control_is_rejected_not_evaluated(app: StudioApp) -> None:
     before = app.worker.latest_ticket
     app._suspend = True

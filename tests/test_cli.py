@@ -23,6 +23,7 @@ def test_evaluate_json_has_the_documented_fields(capsys: pytest.CaptureFixture[s
     for key in ("p", "v", "w", "topspin", "sidespin"):
         assert key in out["second_bounce"]
     assert out["planner"]["status"] == "ok" and out["planner"]["solve_ms"] > 0
+    assert len(out["efforts"]["peak"]) == 8 and out["efforts"]["usage"] == pytest.approx([p / lim for p, lim in zip(out["efforts"]["peak"], out["efforts"]["limit"])])
     (entry,) = ServeLibrary(tmp_path / "lib").entries()
     assert entry.id == out["exported"]["id"]
 

@@ -156,3 +156,21 @@ def test_dynamic_limit_expansion_plans_what_the_robots_limits_cannot(context: Ev
     used = max(float(np.max(np.abs(plan.udd) / robot.acceleration)), float(np.max(np.abs(plan.jerk) / robot.jerk)))
     assert used > 1.05  # the plan needs the expansion
     assert evaluate_serve(replace(serve, limit_scale=scale), context).plan is not None
+
+
+def test_effort_report_of_a_planned_serve(context: EvaluationContext) -> None:
+    from studio.evaluate import effort_report, plan_motion
+
+    motion = plan_motion(load_serve(Path(__file__).resolve().parent.parent / "examples" / "serves" / "topspin_right.json"), context)
+    rep = effort_report(motion, context.robot)
+    assert rep is not None and rep.names == context.robot.joint_names
+    assert np.all(rep.peak >= 0) and np.all((rep.at >= motion.t[0]) & (rep.at <= motion.t[-1]))
+    np.testing.assert_allclose(rep.usage, rep.peak / context.robot.effort_limits)
+    name, use = rep.worst
+    assert use == pytest.approx(rep.usage.max()) and name in rep.names
+    # the peaks are at least the static gravity loads of the motion's own configurations
+    static = np.abs(context.robot.joint_efforts(motion.q[::50], np.zeros_like(motion.q[::50]), np.zeros_like(motion.q[::50]))).max(axis=0)
+    assert np.all(rep.peak >= static - 1.0)
+    assert set(rep.to_json()) == {"names", "peak", "at", "limit", "usage"} and "Joint efforts" in rep.markdown()
+    unplanned = plan_motion(HandServe(name="early", side="right", params=ServeParams(tau=0.40, velocity=(3.0, 0, 0), yaw=math.pi / 2, roll=0.0)), context)
+    assert effort_report(unplanned, context.robot) is None

@@ -431,3 +431,32 @@ def test_missing_or_broken_urdf(tmp_path: Path) -> None:
     stale.write_text((robots_dir() / rd.URDF_NAME).read_text().replace('velocity="6.283185307"', 'velocity="1"', 1))
     with pytest.raises(RobotModelError, match="differ"):
         load_robot(stale, spec_path=TOML_PATH)
+
+
+def test_joint_efforts_are_rigid_body_dynamics() -> None:
+    """RNEA at rest equals the gradient of the potential energy; a gantry_x acceleration
+    needs (mass it carries) x a; bad shapes and non-finite inputs are refused."""
+    import pinocchio as pin
+
+    robot = load_robot()
+    rng = np.random.default_rng(3)
+    lo, hi = robot.limits.lower, robot.limits.upper
+    for _ in range(5):
+        q = lo + (hi - lo) * rng.uniform(0.2, 0.8, 8)
+        tau = robot.joint_efforts(q, np.zeros(8), np.zeros(8))[0]
+        grad = np.zeros(8)
+        for k in range(8):
+            dq = np.zeros(8)
+            dq[k] = 1e-6
+            grad[k] = (pin.computePotentialEnergy(robot.model, robot.data, q + dq) - pin.computePotentialEnergy(robot.model, robot.data, q - dq)) / 2e-6
+        np.testing.assert_allclose(tau, grad, atol=1e-4)
+    carried = sum(robot.model.inertias[j].mass for j in range(1, robot.model.njoints))
+    a = np.zeros(8)
+    a[0] = 2.0
+    assert robot.joint_efforts(robot.q_rest, np.zeros(8), a)[0, 0] == pytest.approx(2.0 * carried, rel=1e-9)  # F = m a
+    assert robot.joint_efforts(np.tile(robot.q_rest, (3, 1)), np.zeros((3, 8)), np.zeros((3, 8))).shape == (3, 8)
+    with pytest.raises(InvalidInputError, match="joint_efforts"):
+        robot.joint_efforts(np.zeros(7), np.zeros(7), np.zeros(7))
+    with pytest.raises(InvalidInputError, match="finite"):
+        robot.joint_efforts(robot.q_rest, np.full(8, np.nan), np.zeros(8))
+    assert robot.effort_limits.shape == (8,) and np.all(robot.effort_limits > 0)
