@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from studio.errors import InvalidInputError, StudioError
-from studio.evaluate import Evaluation, EvaluationContext, effort_report, evaluate_serve, report_markdown, scene_frame
+from studio.evaluate import EffortReport, Evaluation, EvaluationContext, effort_report, evaluate_serve, report_markdown, scene_frame
 from studio.reward import TASKS
 from studio.scene import StudioScene
 from studio.serve import LIMIT_SCALE_RANGE, GenomeBounds, HandServe, LimitScale, ServeParams, load_serve, save_serve, serve_from_json
@@ -94,6 +94,7 @@ class StudioApp:
         self.library_dir = library_dir
         self.scene = StudioScene(server)
         self.last: Evaluation | None = None
+        self.last_efforts: EffortReport | None = None  # of ``last``
         self._lock = threading.Lock()
         self._suspend = False
         self._playing = False
@@ -445,13 +446,15 @@ class StudioApp:
     def _export(self) -> None:
         from studio.library import ServeLibrary
 
-        evaluation = self.last
+        with self._lock:
+            evaluation, efforts = self.last, self.last_efforts
         if evaluation is None:
             self._message("**Export failed:** nothing evaluated yet")
             return
         try:
             entry = ServeLibrary(self.library_dir).add(
-                evaluation, provenance={"kind": "hand-designed", "tool": "studio"}, task=self.task.value, preparation=self.context.preparation(evaluation.serve.side)
+                evaluation, provenance={"kind": "hand-designed", "tool": "studio"}, task=self.task.value, preparation=self.context.preparation(evaluation.serve.side),
+                efforts=efforts,
             )
             verdict = "legal" if evaluation.legal else f"NOT legal ({evaluation.reason})"
             self._message(f"Exported `{evaluation.serve.name}` ({verdict}) to `{self.library_dir}` as `{entry.id}`.")
@@ -482,6 +485,7 @@ class StudioApp:
         efforts = effort_report(evaluation.motion, self.context.robot)  # the worker's thread, as the frame
         with self._lock:
             self.last = evaluation
+            self.last_efforts = efforts
             self.scene.show(frame)
             status, checks, metrics = report_markdown(evaluation)
             self.status_md.content = status + f"\n\n_evaluated in {1000 * result.seconds:.0f} ms_"

@@ -53,7 +53,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.export:
         from studio.library import ServeLibrary
 
-        entry = ServeLibrary(args.export).add(evaluation, provenance={"kind": "hand-designed", "file": str(args.serve)}, task=task, preparation=context.preparation(serve.side))
+        entry = ServeLibrary(args.export).add(evaluation, provenance={"kind": "hand-designed", "file": str(args.serve)}, task=task, preparation=context.preparation(serve.side), efforts=efforts)
         payload["exported"] = {"library": str(args.export), "id": entry.id}
     if args.json:
         print(json.dumps(payload, indent=2))
@@ -75,7 +75,7 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     import time
     from pathlib import Path
 
-    from studio.evaluate import EvaluationContext, evaluate_serve
+    from studio.evaluate import EvaluationContext, effort_report, evaluate_serve
     from dataclasses import replace
 
     from studio.errors import InvalidInputError
@@ -143,7 +143,10 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
 
         context = EvaluationContext.default()
         evaluation = evaluate_serve(best, context, task=args.task)
-        entry = ServeLibrary(args.export).add(evaluation, provenance={"kind": "hebo", "run": str(run_dir), "seed": args.seed}, task=args.task, preparation=context.preparation(best.side))
+        entry = ServeLibrary(args.export).add(
+            evaluation, provenance={"kind": "hebo", "run": str(run_dir), "seed": args.seed}, task=args.task, preparation=context.preparation(best.side),
+            efforts=effort_report(evaluation.motion, context.robot),
+        )  # fmt: skip
         print(f"exported to {args.export} as {entry.id}")
     return 0 if s.legal else 1
 

@@ -8,7 +8,7 @@ Format (``DESIGN.md``, schema ``serve-studio/library@1``):
   second bounce, ``legal``, ``reward`` and its ``terms``, ``provenance`` (hand-designed
   or optimizer run and seed), ``robot`` (model name and SHA-256 of the robot source and
   URDF, the serve's ``limit_scale`` and the effective derivative ``limits`` it was
-  planned with), ``created`` (UTC ISO time), ``usage`` counters and the
+  planned with, and when given the peak joint ``efforts`` of its motion), ``created`` (UTC ISO time), ``usage`` counters and the
   ``arrays`` file name;
 - ``<id>.npz`` per serve (plain arrays, no pickled objects): ``t`` (M,) [s] and ``u``
   (M, 8) joint commands of toss + strike + return at 1 kHz on the toss clock, ``q``
@@ -238,7 +238,7 @@ class ServeLibrary:
                 return e
         raise InvalidInputError(f"serve {serve_id!r} not found in library {self.folder}")
 
-    def add(self, evaluation: Any, *, provenance: dict[str, Any] | None = None, task: str | None = None, preparation: Any = None) -> LibraryEntry:
+    def add(self, evaluation: Any, *, provenance: dict[str, Any] | None = None, task: str | None = None, preparation: Any = None, efforts: Any = None) -> LibraryEntry:
         """Export an evaluated serve (:class:`studio.evaluate.Evaluation`) with its plan.
 
         ``preparation``: the :class:`studio.planner.PreparationPhase` before the toss
@@ -246,6 +246,9 @@ class ServeLibrary:
         strike + return to rest on one clock from 0 (DESIGN.md), the toss starting at
         ``t_toss`` (stored in the NPZ and the index). Without it the arrays start with the
         toss (``t_toss`` = 0).
+
+        ``efforts``: the motion's :class:`studio.evaluate.EffortReport`; its peak force/torque
+        per joint, time and ratio to the nominal effort go into the entry's ``robot.efforts``.
 
         Raises InvalidInputError when the evaluation has no motion plan to export.
         """
@@ -297,7 +300,7 @@ class ServeLibrary:
             "reward": float(ev.reward.total),
             "terms": ev.reward.as_dict(),
             "provenance": provenance or {"kind": "hand-designed"},
-            "robot": robot_identity(ev.serve.limit_scale),
+            "robot": {**robot_identity(ev.serve.limit_scale), **({"efforts": efforts.to_json()} if efforts is not None else {})},
             "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "usage": {"used": 0, "won": 0, "lost": 0, "aces": 0},
             "arrays": f"{sid}.npz",

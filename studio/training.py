@@ -193,7 +193,7 @@ def _ray_job(side: TossSide, seed: int, cfg: TrainConfig, run_json: str | None, 
 
 def _finish(index: int, run_dir: Path, seed: int, best: HandServe | None, cfg: TrainConfig, context: Any, library: Any, seconds: float) -> TrainedServe:
     """Evaluate the chosen serve on the mean toss, export it if legal, mark the run done."""
-    from studio.evaluate import evaluate_serve
+    from studio.evaluate import effort_report, evaluate_serve
 
     if best is None:
         return TrainedServe(index, run_dir, False, -math.inf, {}, None, seconds, "nothing evaluated")
@@ -204,7 +204,10 @@ def _finish(index: int, run_dir: Path, seed: int, best: HandServe | None, cfg: T
         best = robustify_serve(best, context=context, task=cfg.task, evaluations=cfg.robustify, run_dir=folder, resume=(folder / META_NAME).exists()).serve
     ev = evaluate_serve(best, context, task=cfg.task)
     row = _row(ev, cfg.task) if ev.legal else {}
-    entry_id = library.add(ev, provenance={"kind": "hebo", "run": str(run_dir), "seed": seed}, task=cfg.task, preparation=context.preparation(best.side)).id if ev.legal else None
+    entry_id = library.add(
+        ev, provenance={"kind": "hebo", "run": str(run_dir), "seed": seed}, task=cfg.task, preparation=context.preparation(best.side),
+        efforts=effort_report(ev.motion, context.robot),
+    ).id if ev.legal else None  # fmt: skip
     done = {"id": entry_id, "legal": bool(ev.legal), "reward": float(ev.reward.total), "row": row, "reason": ev.reason, "serve": best.to_json()}
     (run_dir / "exported.json").write_text(json.dumps(done, allow_nan=False) if math.isfinite(done["reward"]) else json.dumps({**done, "reward": None}))
     return TrainedServe(index, run_dir, bool(ev.legal), float(ev.reward.total), row, entry_id, seconds, "" if ev.legal else ev.reason)

@@ -126,8 +126,13 @@ def test_optimize_from_seeds_runs_and_loads_the_best(app: StudioApp) -> None:
 
 
 def test_export_then_load_library_serve(app: StudioApp) -> None:
+    from studio.library import ServeLibrary
+
+    assert app.worker.wait_idle(120)
     app._export()
     assert "Exported" in app.message_md.content
+    newest = ServeLibrary(app.library_dir).entries()[-1]
+    assert newest.data["robot"]["efforts"]["names"] == list(app.context.robot.joint_names)  # the evaluation's own report
     labels = [o for o in app.library_pick.options if o != "(none)"]
     assert labels
     exported = app.last.serve.params  # type: ignore[union-attr]

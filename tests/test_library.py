@@ -139,3 +139,16 @@ def test_export_records_the_limit_scale_and_the_limits_it_needs(tmp_path: Path) 
     (tmp_path / "lib" / INDEX_NAME).write_text(json.dumps(doc))
     with pytest.raises(DataFileError, match=r"index.json: serves\[1\].robot: field 'limit_scale': LimitScale.jerk"):
         lib.entries()
+
+
+def test_export_records_the_peak_joint_efforts_when_given(tmp_path: Path) -> None:
+    from studio.evaluate import effort_report
+
+    context = EvaluationContext.default()
+    ev = evaluate_serve(load_serve(EXAMPLE), context)
+    lib = ServeLibrary(tmp_path / "lib")
+    rep = effort_report(ev.motion, context.robot)
+    entry = lib.add(ev, efforts=rep)
+    stored = lib.get(entry.id).data["robot"]["efforts"]
+    assert stored == rep.to_json() and len(stored["usage"]) == 8
+    assert "efforts" not in lib.add(ev).data["robot"]  # optional
