@@ -126,11 +126,10 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     print(f"chosen serve: mean reward {s.mean_reward:+.3f} on {len(s.rewards)} fresh tosses, legal on {100 * s.legal_fraction:.0f} % ({'legal' if s.legal else 'not legal'})")
     best = replace(result.best, name=args.name or f"{args.task} {args.side} seed {args.seed}", task=args.task, notes=f"HEBO run {run_dir}, seed {args.seed}")
     if args.robustify:
-        from studio.robust import META_NAME, robustify_serve
+        from studio.robust import robustify_chosen
 
-        folder = run_dir / "robustify"
         print(f"robustify: {args.robustify} candidates around the chosen serve ...", flush=True)
-        rob = robustify_serve(best, task=args.task, evaluations=args.robustify, run_dir=folder, resume=(folder / META_NAME).exists())
+        rob = robustify_chosen(best, run_dir, evaluations=args.robustify, task=args.task)
         print(rob.summary())
         best = rob.serve
     out = run_dir / "best_serve.json"

@@ -372,3 +372,15 @@ def robustify_serve(
         )
         best_serve = replace(best_serve, notes=(serve.notes + " " + note).strip())
     return RobustifyResult(best_serve, start_score, best_score, keep, done, stopped, Path(run_dir) if run_dir is not None else None, improved)
+
+
+RUN_SUBDIR = "robustify"
+"""Sub-folder of an optimization run that logs the robustness search of its chosen serve."""
+
+
+def robustify_chosen(serve: HandServe, run_dir: str | Path, *, evaluations: int, task: str, context: Any = None) -> RobustifyResult:
+    """:func:`robustify_serve` on an optimization run's chosen serve, logged in
+    ``run_dir/robustify/`` and resumed from there when that search was started before
+    (``optimize``/``train --robustify``)."""
+    folder = Path(run_dir) / RUN_SUBDIR
+    return robustify_serve(serve, context=context, task=task, evaluations=evaluations, run_dir=folder, resume=(folder / META_NAME).exists())

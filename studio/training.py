@@ -198,10 +198,9 @@ def _finish(index: int, run_dir: Path, seed: int, best: HandServe | None, cfg: T
     if best is None:
         return TrainedServe(index, run_dir, False, -math.inf, {}, None, seconds, "nothing evaluated")
     if cfg.robustify:
-        from studio.robust import META_NAME, robustify_serve
+        from studio.robust import robustify_chosen
 
-        folder = run_dir / "robustify"
-        best = robustify_serve(best, context=context, task=cfg.task, evaluations=cfg.robustify, run_dir=folder, resume=(folder / META_NAME).exists()).serve
+        best = robustify_chosen(best, run_dir, evaluations=cfg.robustify, task=cfg.task, context=context).serve
     ev = evaluate_serve(best, context, task=cfg.task)
     row = _row(ev, cfg.task) if ev.legal else {}
     entry_id = library.add(
