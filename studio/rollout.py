@@ -1058,7 +1058,7 @@ def _impact(
         part = name
         v_a, w_a = net.bounce(v_b, w_b, normal, "net" if kind == "net" else "post")
     else:
-        v_s, _ = track.point_velocity(tc, body, point)
+        v_s, w_s = track.point_velocity(tc, body, point)
         part = name
         v_a, w_a = _restitution(v_b, v_s, normal, options.robot_restitution), w_b.copy()
         if kind == "racket":
@@ -1069,7 +1069,7 @@ def _impact(
                 part = "face_a" if s > 0.0 else "face_b"
                 if racket_model is None:
                     racket_model = RacketModel.default()
-                v_a, w_a = racket_model.bounce_moving(v_b, w_b, R, v_s, s)
+                v_a, w_a = racket_model.bounce_moving(v_b, w_b, R, v_s, s, omega=w_s)
             else:
                 part = "rim"
     for a in (p, point, normal, v_b, v_a, w_b, w_a, v_s):
