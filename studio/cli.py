@@ -33,40 +33,66 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     from dataclasses import replace
 
-    from studio.evaluate import EvaluationContext, effort_report, evaluate_robust, evaluate_serve, report_markdown
+    from studio.errors import InvalidInputError
+    from studio.evaluate import EvaluationContext, effort_report, evaluate_motion, evaluate_robust, evaluate_serve, report_markdown
     from studio.serve import LimitScale, load_serve
 
+    if args.mujoco and args.tosses > 1:
+        raise InvalidInputError(
+            "--mujoco cannot be combined with --tosses > 1: the MuJoCo rollout tosses the ball from the cup as the motion "
+            "predicts, it cannot replay recorded tosses (use --mujoco alone, or --tosses without it)"
+        )
     serve = load_serve(args.serve)
     if args.limit_scale is not None:
         serve = replace(serve, limit_scale=LimitScale.parse(args.limit_scale))
     context = EvaluationContext.default()
     task = args.task or serve.task or "topspin_velocity"
+    robust = None
     if args.tosses > 1:
         robust = evaluate_robust(serve, context, task=task, tosses=args.tosses, min_legal_fraction=args.legal_fraction)
-        evaluation = robust.evaluations[0]
+        evaluation = robust.evaluations[0]  # the checks and metrics shown: one recorded toss
         payload = robust.to_json()
     else:
         evaluation = evaluate_serve(serve, context, task=task, mujoco=args.mujoco)
         payload = evaluation.to_json()
     efforts = effort_report(evaluation.motion, context.robot)
     payload["efforts"] = efforts.to_json() if efforts is not None else None
+    exported_note = ""
     if args.export:
         from studio.library import ServeLibrary
 
-        entry = ServeLibrary(args.export).add(evaluation, provenance={"kind": "hand-designed", "file": str(args.serve)}, task=task, preparation=context.preparation(serve.side), efforts=efforts)
-        payload["exported"] = {"library": str(args.export), "id": entry.id}
+        exported = evaluation
+        provenance: dict[str, object] = {"kind": "hand-designed", "file": str(args.serve)}
+        if robust is not None:
+            # The library holds mean-toss evaluations (as optimize and train export): the same
+            # plan on the mean toss path, never one sampled toss's; the robust result goes along.
+            exported = evaluate_motion(evaluation.motion, context, task=task)
+            provenance["robust"] = {
+                "tosses": len(robust.evaluations), "toss_samples": list(robust.samples), "legal": robust.legal,
+                "legal_fraction": robust.legal_fraction, "min_legal_fraction": robust.min_legal_fraction, "mean_reward": robust.reward,
+            }  # fmt: skip
+            exported_note = (
+                f" (the mean toss path's evaluation: {'legal' if exported.legal else 'not legal'}, reward {exported.reward.total:+.3f}; "
+                "the robust result is in its provenance)"
+            )
+        entry = ServeLibrary(args.export).add(exported, provenance=provenance, task=task, preparation=context.preparation(serve.side), efforts=efforts)
+        payload["exported"] = {
+            "library": str(args.export), "id": entry.id, "toss": "mean", "legal": exported.legal, "reward": exported.reward.total,
+        }  # fmt: skip
     if args.json:
         print(json.dumps(payload, indent=2))
     else:
         status, checks, metrics = report_markdown(evaluation)
         print(f"{serve.name} ({serve.side} toss, task {task})\n")
+        if robust is not None and robust.samples:
+            print(f"checks and metrics of recorded toss {robust.samples[0] + 1} (the first of {len(robust.evaluations)} drawn; the verdict over all of them is at the end)\n")
         print(status, checks, metrics, sep="\n\n")
         if efforts is not None:
             print("\n" + efforts.markdown())
         if args.tosses > 1:
             print(f"\nover {args.tosses} recorded tosses: legal fraction {payload['legal_fraction']:.2f}, mean reward {payload['reward']:+.3f}, legal: {payload['legal']}")
         if args.export:
-            print(f"\nexported to {args.export} as {payload['exported']['id']}")
+            print(f"\nexported to {args.export} as {payload['exported']['id']}{exported_note}")
     return 0 if payload["legal"] else 1
 
 
@@ -374,9 +400,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--task", default=None, help="reward task preset (default: the serve's task or topspin_velocity)")
     p.add_argument("--tosses", type=int, default=1, help="evaluate on K recorded tosses (robust evaluation)")
     p.add_argument("--legal-fraction", type=float, default=0.8, help="fraction of legal tosses for a legal serve (with --tosses)")
-    p.add_argument("--mujoco", action="store_true", help="check with the MuJoCo rollout instead of the analytic predictor")
+    p.add_argument("--mujoco", action="store_true", help="check with the MuJoCo rollout (ball tossed from the cup, robot and ball in MuJoCo) instead of the analytic predictor; not with --tosses > 1")
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
-    p.add_argument("--export", default=None, metavar="DIR", help="write the plan to the serve library folder DIR")
+    p.add_argument("--export", default=None, metavar="DIR", help="write the plan to the serve library folder DIR (with --tosses: its mean-toss evaluation, the robust result in the provenance)")
     p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default: the serve file's limit_scale, else 1)")
     handlers["evaluate"] = _cmd_evaluate
 

@@ -41,7 +41,7 @@ from studio.ball import (
 from studio.court import DEFAULT_COURT
 from studio.errors import InvalidInputError
 from studio.reward import PLANNER_FAILURE_PENALTY, RewardTerms, RewardWeights, reward, task_weights
-from studio.robot import Robot, load_robot
+from studio.robot import JointDynamics, Robot, load_robot
 from studio.rules import LegalityReport, RuleParams, ServeOutcome, check_serve, net_crossing
 from studio.scene import COLORS, Marker, PathSegment, Playback, RacketTarget, SceneFrame
 from studio.serve import HandServe, LimitScale, TossSide
@@ -237,6 +237,29 @@ class ServeMotion:
     """Racket motion around the strike, for the ball predictor."""
     timings_ms: dict[str, float]
     """Wall time per stage [ms]."""
+    qd: npt.NDArray[np.float64] | None = None
+    """Predicted joint velocities (M, 8) (the toss's and the plan's, exact), when planned."""
+
+    def joint_states(self, t_end: float, dynamics: JointDynamics) -> npt.NDArray[np.float64]:
+        """Predicted joint states [q, q'] (n, 8, 2) on the 1 kHz command grid from ``t[0]``
+        up to (at least) ``t_end``: the planned motion, then the joint model holding the
+        last command (the robot stays at rest pose ``u[-1]`` after the return).
+
+        The ball may fly on long after the motion ends (the evaluation follows it
+        :data:`FLIGHT_AFTER_CONTACT` after the contact; the return is usually shorter), so
+        a MuJoCo rollout needs the robot beyond ``t[-1]``."""
+        if self.t is None or self.u is None or self.q is None or self.qd is None:
+            raise InvalidInputError("joint_states: the motion was not planned")
+        t = np.asarray(self.t)
+        X = np.stack([np.asarray(self.q), np.asarray(self.qd)], axis=2)
+        dt = float(t[1] - t[0])
+        n_total = int(np.ceil((t_end - float(t[0])) / dt - 1e-9)) + 1
+        extra = n_total - X.shape[0]
+        if extra > 0:
+            # X[k+1] = A X[k] + B u[k]: the state one sample after X[-1], then holding u[-1]
+            hold = np.repeat(np.asarray(self.u)[-1:], extra + 1, axis=0)
+            X = np.concatenate([X, dynamics.simulate(hold, dt, X[-1])[1:]])
+        return X
 
 
 @dataclass(frozen=True)
@@ -526,6 +549,7 @@ def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any
     t_full = np.concatenate([prim.t[:i_sw], t_switch + np.asarray(plan.t)])
     u_full = np.concatenate([prim.u[:i_sw], plan.u])
     q_full = np.concatenate([prim.q[:i_sw], plan.q])
+    qd_full = np.concatenate([prim.X[:i_sw, :, 1], plan.qd])
     # The toss part is the same for every serve of a side: checked once, cached.
     report = context.toss_collision(serve.side, i_sw)
     if not report.collides:
@@ -537,7 +561,7 @@ def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any
     positions, rotations = context.racket_poses(q_full[window])
     racket = SampledRacketMotion(t_full[window], positions, rotations)
     _lap(timings, "racket_fk", clock)
-    return ServeMotion(serve, target, plan, t_full, u_full, q_full, report, None, racket, timings)
+    return ServeMotion(serve, target, plan, t_full, u_full, q_full, report, None, racket, timings, qd=qd_full)
 
 
 def evaluate_motion(
@@ -548,7 +572,14 @@ def evaluate_motion(
     toss_sample: int | None = None,
     mujoco: bool = False,
 ) -> Evaluation:
-    """Predict the ball for one toss (mean path or a recorded sample), check and score."""
+    """Predict the ball for one toss (mean path or a recorded sample), check and score.
+
+    With ``mujoco`` the verdict comes from the MuJoCo rollout (:func:`studio.rollout.rollout`)
+    of the whole serve: the ball rides in the cup of the predicted motion until it is
+    released, then flies until ``tau + FLIGHT_AFTER_CONTACT`` (or the floor), the robot
+    holding its rest pose after the motion ends. That toss is the predicted one, so it
+    cannot be combined with a recorded ``toss_sample`` (InvalidInputError).
+    """
     weights = task_weights(task) if isinstance(task, str) else task
     timings = dict(motion.timings_ms)
     clock = time.perf_counter()
@@ -556,6 +587,11 @@ def evaluate_motion(
     toss = context.toss_model(serve.side)
     if toss_sample is not None and not (0 <= toss_sample < toss.n_tosses):
         raise InvalidInputError(f"toss sample {toss_sample} out of range: the {serve.side} toss has {toss.n_tosses} recordings")
+    if mujoco and toss_sample is not None:
+        raise InvalidInputError(
+            f"the MuJoCo rollout tosses the ball from the cup as the motion predicts: it cannot replay recorded toss {toss_sample + 1}; "
+            "evaluate the mean toss path with it, or the recorded toss without it"
+        )
     if motion.failure is not None:
         return _failure(motion, toss, timings)
     assert motion.t is not None and motion.q is not None and motion.racket is not None
@@ -580,16 +616,24 @@ def evaluate_motion(
     if mujoco:
         from studio.rollout import rollout
 
-        X = np.stack([q_full, np.gradient(q_full, t_full, axis=0)], axis=2)
-        rollout_result = rollout(context.mujoco_scene, t=t_full, X=X, ball="cup", t_end=t_end, racket_model=context.racket_model)
+        # the robot as planned, then at rest until the ball's flight ends (t_end > t_full[-1])
+        X = motion.joint_states(t_end, context.robot.dynamics)
+        rollout_result = rollout(
+            context.mujoco_scene, t=t_full, X=X, ball="cup", t_end=t_end, flight=context.flight,
+            racket_model=context.racket_model,
+        )
         source = rollout_result
         clock = _lap(timings, "mujoco", clock)
 
     contacts = tuple(getattr(source, "events", None) or getattr(source, "contacts", ()))
     racket_hits = [c for c in contacts if c.kind == "racket"]
     strike_t = racket_hits[0].t if racket_hits else None
-    release_t = float(getattr(rollout_result, "release_t", None) or toss.t_lift)
-    release_z = float(ball0.p[2] - ball0.v[2] * (t_start - release_t))
+    release = getattr(rollout_result, "release", None)
+    if release is not None:  # the rollout's own release from the cup
+        release_t, release_z = float(release.time), float(release.position[2])
+    else:  # the toss model's lift, the ball's height extrapolated back to it
+        release_t = float(toss.t_lift)
+        release_z = float(ball0.p[2] - ball0.v[2] * (t_start - release_t))
     outcome = ServeOutcome(
         t=np.asarray(source.t),
         p=np.asarray(source.p),
@@ -653,6 +697,8 @@ class RobustEvaluation:
     """One evaluation per toss sample (they share the plan)."""
     min_legal_fraction: float
     """Fraction p of legal tosses needed for the serve to count as legal."""
+    samples: tuple[int, ...] = ()
+    """Recorded toss index of each evaluation (0-based), when known."""
 
     @property
     def legal_fraction(self) -> float:
@@ -677,20 +723,26 @@ class RobustEvaluation:
         return out
 
     def to_json(self) -> dict[str, Any]:
-        """The first toss's metrics, with the robust verdict on top: ``legal``, ``reward``
-        (mean), ``legal_fraction``, ``failed_check`` (None when robustly legal, else the
-        check most tosses failed), ``failed_checks`` (counts) and ``per_toss``."""
+        """The first toss's metrics (``status``, ``reason``, checks, bounces, ... of the
+        recorded toss ``metrics_toss_sample``), with the robust verdict on top: ``legal``,
+        ``reward`` (mean), ``legal_fraction``, ``failed_check`` (None when robustly legal,
+        else the check most tosses failed), ``failed_checks`` (counts) and ``per_toss``."""
         first = self.evaluations[0].to_json()
         counts = self.failed_checks()
+        samples: list[int | None] = list(self.samples) if len(self.samples) == len(self.evaluations) else [None] * len(self.evaluations)
         first.update(
             {
+                "metrics_toss_sample": samples[0],
                 "legal": self.legal,
                 "reward": self.reward,
                 "legal_fraction": self.legal_fraction,
                 "failed_check": None if self.legal or not counts else max(counts, key=lambda c: counts[c]),
                 "failed_checks": counts,
                 "tosses": len(self.evaluations),
-                "per_toss": [{"legal": e.legal, "reward": e.reward.total, "failed_check": e.failed_check} for e in self.evaluations],
+                "per_toss": [
+                    {"toss_sample": k, "legal": e.legal, "reward": e.reward.total, "failed_check": e.failed_check}
+                    for k, e in zip(samples, self.evaluations)
+                ],
             }
         )
         return first
@@ -720,7 +772,7 @@ def evaluate_robust(
     samples = rng.choice(toss.n_tosses, size=tosses, replace=False)
     motion = plan_motion(serve, context)
     evaluations = tuple(evaluate_motion(motion, context, task=task, toss_sample=int(k)) for k in samples)
-    return RobustEvaluation(evaluations, min_legal_fraction)
+    return RobustEvaluation(evaluations, min_legal_fraction, tuple(int(k) for k in samples))
 
 
 # -- presentation helpers shared by the studio, the CLI and notebooks ---------------------

@@ -275,3 +275,41 @@ def test_make_robust_runs_in_the_background_and_reports(app: StudioApp) -> None:
     assert "Done" in text and "after 12 candidates" in text, text
     assert ("now in the controls" in text) or ("No candidate beat it" in text)
     assert app.worker.wait_idle(120)
+
+
+def test_mujoco_rollout_checkbox_shows_the_rollouts_verdict(app: StudioApp) -> None:
+    """Ticking "MuJoCo rollout" evaluates the serve with the rollout (it used to fail:
+    "rollout: X covers ... samples, t_end = ... needs ..."); a recorded toss cannot be
+    replayed by it, which the studio says instead of mislabelling the rollout's toss."""
+    from studio.app import EXAMPLES_DIR
+    from studio.evaluate import evaluate_serve
+    from studio.serve import load_serve
+
+    def settle(what: str) -> None:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not (app.worker.wait_idle(1) and "_evaluating..._" not in app.status_md.content):
+            time.sleep(0.05)
+        assert app.worker.wait_idle(1), what
+
+    app.load(load_serve(EXAMPLES_DIR / "topspin_right.json"))
+    app.toss.value = "mean path"
+    settle("analytic evaluation")
+    app.mujoco.value = True
+    try:
+        settle("MuJoCo evaluation")
+        ev = app.last
+        assert ev is not None and ev.rollout is not None, app.status_md.content
+        assert "Evaluation failed" not in app.status_md.content
+        assert ev.rollout.end_reason == "floor" and ev.rollout.t[-1] > ev.t[-1]  # type: ignore[index]
+        analytic = evaluate_serve(ev.serve, app.context, task=app.task.value)
+        assert ev.status == analytic.status == "legal" and "LEGAL" in app.status_md.content
+        assert abs(ev.reward.total - analytic.reward.total) < 0.05
+        assert "time: mujoco" in app.metrics_md.content
+        app.toss.value = "recorded 1"
+        settle("refused recorded toss")
+        assert "Evaluation failed" in app.status_md.content and "cannot replay recorded toss 1" in app.status_md.content
+    finally:
+        app.toss.value = "mean path"
+        app.mujoco.value = False
+        settle("back to the analytic evaluation")
+    assert app.last is not None and app.last.rollout is None

@@ -173,3 +173,36 @@ def test_match_tab_serves_and_records_a_point(studio, page) -> None:  # type: ig
     assert point.server == "robot" and point.serve == app._match_serve and point.ace and point.winner == "robot"
     page.get_by_text("serving: robot won 100.0 % of 1").first.wait_for(timeout=10_000)
     page.screenshot(path=str(ARTIFACTS / "studio_match.png"))
+
+
+def test_mujoco_rollout_checkbox_evaluates_with_the_rollout(studio, page) -> None:  # type: ignore[no-untyped-def]
+    """Ticking "MuJoCo rollout" re-evaluates the serve with the MuJoCo rollout and shows its
+    verdict (it used to fail with "rollout: X covers ... samples, t_end = ... needs ...")."""
+    from studio.serve import load_serve
+
+    app, _, _ = studio
+    example = Path(__file__).resolve().parent.parent / "examples" / "serves" / "topspin_right.json"
+    if app._playing:  # a match serve left playing: the software-rendered page would crawl
+        app._toggle_play()
+    app.load(load_serve(example))
+    _wait(lambda: app.worker.wait_idle(0.1) and app.last is not None and app.last.serve.name == "topspin right", 60, "the example serve")
+    page.get_by_role("tab", name="Serve").click()
+    box = page.get_by_text("MuJoCo rollout", exact=True).first.locator("xpath=ancestor::div[contains(@class, 'mantine-Flex-root')][1]").locator("input[type=checkbox]")
+    box.check(force=True)  # Mantine's input sits under its styled box
+    try:
+        _wait(lambda: app.mujoco.value is True, 30, "the checkbox to reach the studio")
+        _wait(lambda: app.worker.wait_idle(0.1) and app.last is not None and app.last.rollout is not None or "Evaluation failed" in app.status_md.content, 120, "MuJoCo evaluation")
+        assert "Evaluation failed" not in app.status_md.content, app.status_md.content
+        ev = app.last
+        assert ev.legal, ev.reason
+        assert ev.rollout.end_reason == "floor" and ev.rollout.t[-1] > ev.t[-1]  # the ball followed past the motion's end
+        page.get_by_role("tab", name="Checks").click()
+        page.get_by_text("LEGAL").first.wait_for(timeout=30_000)
+        assert page.get_by_text("Evaluation failed").count() == 0
+        page.get_by_role("tab", name="Metrics").click()
+        page.get_by_text("time: mujoco").first.wait_for(timeout=30_000)
+        page.screenshot(path=str(ARTIFACTS / "studio_mujoco_rollout.png"))
+    finally:
+        page.get_by_role("tab", name="Serve").click()
+        box.uncheck(force=True)
+        _wait(lambda: app.mujoco.value is False and app.worker.wait_idle(0.1) and app.last is not None and app.last.rollout is None, 120, "back to the analytic evaluation")

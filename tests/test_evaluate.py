@@ -174,3 +174,51 @@ def test_effort_report_of_a_planned_serve(context: EvaluationContext) -> None:
     assert set(rep.to_json()) == {"names", "peak", "at", "limit", "usage"} and "Joint efforts" in rep.markdown()
     unplanned = plan_motion(HandServe(name="early", side="right", params=ServeParams(tau=0.40, velocity=(3.0, 0, 0), yaw=math.pi / 2, roll=0.0)), context)
     assert effort_report(unplanned, context.robot) is None
+
+
+def test_mujoco_rollout_follows_the_ball_past_the_end_of_the_motion(context: EvaluationContext) -> None:
+    """Regression (issue: "rollout: X covers 1496 samples, t_end = 2.5224 needs 2524"):
+    the ball flies on after the robot is back at rest, so the rollout needs the robot's
+    states beyond the motion: the plan's own, then the joint model holding the last command."""
+    from studio.evaluate import FLIGHT_AFTER_CONTACT, plan_motion
+
+    serve = load_serve(Path(__file__).resolve().parent.parent / "examples" / "serves" / "topspin_right.json")
+    t_end = serve.params.tau + FLIGHT_AFTER_CONTACT
+    motion = plan_motion(serve, context)
+    assert motion.t is not None and motion.q is not None and motion.qd is not None and motion.u is not None
+    M = len(motion.t)
+    assert motion.t[-1] < t_end  # the case of the issue
+    X = motion.joint_states(t_end, context.robot.dynamics)
+    assert X.shape == (math.ceil((t_end - motion.t[0]) / 1e-3 - 1e-9) + 1, 8, 2)  # the grid through t_end
+    np.testing.assert_array_equal(X[:M, :, 0], motion.q)
+    np.testing.assert_array_equal(X[:M, :, 1], motion.qd)
+    # the exact velocities are those of the positions (central differences at 1 kHz)
+    np.testing.assert_allclose(np.gradient(motion.q, motion.t, axis=0)[1:-1], motion.qd[1:-1], atol=0.02)
+    # after the motion: continuous, settling on the last command, at rest
+    seam = X[M - 3 : M + 3]  # positions advance by the mean velocity of each step, across the seam too
+    np.testing.assert_allclose(np.diff(seam[:, :, 0], axis=0), 0.5e-3 * (seam[1:, :, 1] + seam[:-1, :, 1]), atol=1e-6)
+    np.testing.assert_allclose(X[-1, :, 0], motion.u[-1], atol=1e-4)
+    np.testing.assert_allclose(X[-1, :, 1], 0.0, atol=1e-3)
+
+    ev = evaluate_serve(serve, context, task=serve.task or "topspin_velocity", mujoco=True)
+    r = ev.rollout
+    assert r is not None and ev.legal, ev.reason
+    assert [c.kind for c in r.contacts][:3] == ["racket", "table", "table"] and r.contacts[0].part == "face_a"
+    assert r.contacts[2].t > motion.t[-1]  # the second bounce comes after the motion's end
+    assert r.end_reason == "floor" and r.t[-1] == pytest.approx(r.t_final, abs=1e-3) and r.t_final < t_end
+    np.testing.assert_allclose(r.q[:M], motion.q, atol=1e-12)
+    # the toss checks use the rollout's own release from the cup
+    rise = next(c for c in ev.legality.checks if c.name == "toss_rise")  # type: ignore[union-attr]
+    assert r.release is not None
+    k = (r.t >= r.release.time) & (r.t <= r.contacts[0].t)
+    assert rise.detail == f"rise {100 * (r.p[k, 2].max() - r.release.position[2]):.1f} cm"
+    # the analytic verdict, about the same ball
+    an = evaluate_serve(serve, context, task=serve.task or "topspin_velocity")
+    assert an.legal and abs(ev.reward.total - an.reward.total) < 0.05
+    np.testing.assert_allclose(np.array(ev.metrics.bounces[:2])[:, :2], np.array(an.metrics.bounces)[:, :2], atol=0.08)  # type: ignore[union-attr]
+
+
+def test_mujoco_rollout_cannot_replay_a_recorded_toss(context: EvaluationContext) -> None:
+    serve = load_serve(EXAMPLES[0])
+    with pytest.raises(InvalidInputError, match="MuJoCo rollout tosses the ball from the cup"):
+        evaluate_serve(serve, context, toss_sample=0, mujoco=True)
