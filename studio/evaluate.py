@@ -14,7 +14,9 @@ The chain of the paper's section "Optimizing serve parameters":
    :mod:`studio.ball`, optionally the MuJoCo rollout of :mod:`studio.rollout`);
 5. the legality chain (:mod:`studio.rules`) and the reward (:mod:`studio.reward`).
 
-Times are on the toss command clock (t = 0 at the start of the toss primitive).
+Times are on the toss command clock (t = 0 at the start of the toss primitive), except
+the effort report and the ball-in-cup check: those cover the preparation as well and use
+the exported clock of the library NPZ (t = 0 at the start of the preparation).
 """
 
 from __future__ import annotations
@@ -85,6 +87,7 @@ class EvaluationContext:
     _tosses: dict[str, TossModel] = field(default_factory=dict)
     _toss_reports: dict[str, Any] = field(default_factory=dict)
     _preparations: dict[str, Any] = field(default_factory=dict)
+    _cup_checks: dict[str, Any] = field(default_factory=dict)
     _planners: dict[LimitScale, Any] = field(default_factory=dict)
 
     @classmethod
@@ -114,12 +117,22 @@ class EvaluationContext:
             self._preparations[side] = preparation_phase(self.robot, self.toss_model(side).primitive.u[0])
         return self._preparations[side]
 
+    def cup_hold(self, side: TossSide) -> Any:
+        """Ball-in-cup check of a side's preparation + toss up to the release, on the serve
+        clock (:func:`studio.planner.serve_cup_check`), cached."""
+        if side not in self._cup_checks:
+            from studio.planner import serve_cup_check
+
+            self._cup_checks[side] = serve_cup_check(self.robot, self.preparation(side), self.toss_model(side).primitive)
+        return self._cup_checks[side]
+
     def warm_up(self, side: TossSide) -> None:
-        """Build the toss model of ``side``, the planner and the collision model now
-        (instead of in the first evaluation)."""
+        """Build the toss model of ``side``, the planner, the collision model and the
+        preparation now (instead of in the first evaluation)."""
         self.toss_model(side)
         self.planner
         self.collision
+        self.cup_hold(side)  # and the preparation it checks (~0.15 s)
 
     def toss_model(self, side: TossSide) -> TossModel:
         """The toss model of one side (default recordings), cached."""
@@ -239,6 +252,8 @@ class ServeMotion:
     """Wall time per stage [ms]."""
     qd: npt.NDArray[np.float64] | None = None
     """Predicted joint velocities (M, 8) (the toss's and the plan's, exact), when planned."""
+    preparation: Any = None
+    """The :class:`studio.planner.PreparationPhase` before the toss (the context's), when planned."""
 
     def joint_states(self, t_end: float, dynamics: JointDynamics) -> npt.NDArray[np.float64]:
         """Predicted joint states [q, q'] (n, 8, 2) on the 1 kHz command grid from ``t[0]``
@@ -264,9 +279,10 @@ class ServeMotion:
 
 @dataclass(frozen=True)
 class EffortReport:
-    """Peak joint forces/torques of a serve's motion (preparation excluded): inverse
-    dynamics (:meth:`studio.robot.Robot.joint_efforts`) of the predicted joint trajectory,
-    speeds by central differences at 1 kHz, accelerations from the joint dynamics model
+    """Peak joint forces/torques of a serve's whole exported motion (preparation, toss,
+    strike, return and the final hold: :func:`studio.planner.serve_arrays`): inverse
+    dynamics (:meth:`studio.robot.Robot.joint_efforts`) of the predicted joint trajectory
+    (exact predicted speeds), accelerations from the joint dynamics model
     q'' = wn^2 (u - q) - 2 zeta wn q'. The paper raised its acceleration and jerk limits
     once measured torques showed headroom: this is the same check on the model, against
     the robot's nominal efforts (stand-in values, not data-sheet figures)."""
@@ -276,7 +292,8 @@ class EffortReport:
     peak: npt.NDArray[np.float64]
     """Largest |force/torque| per joint (8,) [N | N m]."""
     at: npt.NDArray[np.float64]
-    """Time of each peak on the toss clock (8,) [s]."""
+    """Time of each peak (8,) [s] on the exported clock (the library NPZ's ``t``: 0 at the
+    start of the preparation; the toss clock when the motion has no preparation)."""
     limit: npt.NDArray[np.float64]
     """Nominal effort per joint (8,) [N | N m]."""
 
@@ -299,21 +316,22 @@ class EffortReport:
         rows = "\n".join(f"| {n} | {p:.1f} | {lim:g} | {100 * p / lim:.0f} % | {t:.3f} |" for n, p, lim, t in zip(self.names, self.peak, self.limit, self.at))
         return (
             f"**Joint efforts** (inverse dynamics, nominal limits): most used {name} at {100 * use:.0f} %\n\n"
-            "| joint | peak [N, N m] | nominal | usage | at [s] |\n| --- | --- | --- | --- | --- |\n" + rows
+            "| joint | peak [N, N m] | nominal | usage | at [s, exported clock] |\n| --- | --- | --- | --- | --- |\n" + rows
         )
 
 
 def effort_report(motion: ServeMotion, robot: Robot) -> EffortReport | None:
-    """The peak joint efforts of ``motion`` (toss, strike and return; None without a motion)."""
+    """The peak joint efforts of ``motion`` as exported: its preparation, toss, strike,
+    return and final hold, times on the exported clock (None without a motion)."""
     if motion.t is None or motion.u is None or motion.q is None or len(motion.t) < 3:
         return None
-    t, u, q = np.asarray(motion.t), np.asarray(motion.u), np.asarray(motion.q)
-    dyn = robot.dynamics
-    qd = np.gradient(q, t, axis=0)
-    qdd = dyn.wn**2 * (u - q) - 2.0 * dyn.zeta * dyn.wn * qd
-    tau = np.abs(robot.joint_efforts(q, qd, qdd))
+    from studio.cup_hold import joint_accelerations
+    from studio.planner import serve_arrays
+
+    arr = serve_arrays(motion.t, motion.u, motion.q, motion.qd, robot.dynamics, preparation=motion.preparation)
+    tau = np.abs(robot.joint_efforts(arr.q, arr.qd, joint_accelerations(robot, arr.u, arr.q, arr.qd)))
     k = np.argmax(tau, axis=0)
-    return EffortReport(robot.joint_names, tau[k, np.arange(tau.shape[1])], t[k], robot.effort_limits)
+    return EffortReport(robot.joint_names, tau[k, np.arange(tau.shape[1])], arr.t[k], robot.effort_limits)
 
 
 @dataclass(frozen=True)
@@ -342,6 +360,9 @@ class Evaluation:
     """Ball state summaries."""
     timings_ms: dict[str, float]
     """Wall time per stage [ms]."""
+    cup_hold: Any = None
+    """Ball-in-cup check of the side's preparation + toss up to the release
+    (:class:`studio.cup_hold.CupHoldCheck`, serve clock); not part of the legality chain."""
 
     @property
     def serve(self) -> HandServe:
@@ -413,6 +434,7 @@ class Evaluation:
                 for c in (self.legality.checks if self.legality else ())
             ],
             "timings_ms": self.timings_ms,
+            "cup_hold": self.cup_hold.to_json() if self.cup_hold is not None else None,
         }
 
 
@@ -525,7 +547,10 @@ def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any
     t_switch = float(prim.t[prim.index_at(toss.t_lift + context.switch_delay)])
 
     def failed(status: Status, reason: str, **kw: Any) -> ServeMotion:
-        return ServeMotion(serve, target, kw.get("plan"), kw.get("t"), kw.get("u"), kw.get("q"), kw.get("collision"), (status, reason), None, timings)
+        return ServeMotion(
+            serve, target, kw.get("plan"), kw.get("t"), kw.get("u"), kw.get("q"), kw.get("collision"), (status, reason), None, timings,
+            qd=kw.get("qd"), preparation=context.preparation(serve.side) if "t" in kw else None,
+        )  # fmt: skip
 
     if p.tau <= t_switch + 0.05:
         return failed("planner_failed", f"contact time tau = {p.tau:.3f} s leaves no time to strike (lift at {toss.t_lift:.3f} s)")
@@ -556,12 +581,12 @@ def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any
         report = context.collision.check(t_full[i_sw:], q_full[i_sw:])
     clock = _lap(timings, "collision", clock)
     if report.collides:
-        return failed("collision", f"collision: {report.describe()}", plan=plan, t=t_full, u=u_full, q=q_full, collision=report)
+        return failed("collision", f"collision: {report.describe()}", plan=plan, t=t_full, u=u_full, q=q_full, qd=qd_full, collision=report)
     window = (t_full >= toss.t_lift - 0.01) & (t_full <= p.tau + 0.25)
     positions, rotations = context.racket_poses(q_full[window])
     racket = SampledRacketMotion(t_full[window], positions, rotations)
     _lap(timings, "racket_fk", clock)
-    return ServeMotion(serve, target, plan, t_full, u_full, q_full, report, None, racket, timings, qd=qd_full)
+    return ServeMotion(serve, target, plan, t_full, u_full, q_full, report, None, racket, timings, qd=qd_full, preparation=context.preparation(serve.side))
 
 
 def evaluate_motion(
@@ -593,12 +618,17 @@ def evaluate_motion(
             "evaluate the mean toss path with it, or the recorded toss without it"
         )
     if motion.failure is not None:
-        return _failure(motion, toss, timings)
+        return replace(_failure(motion, toss, timings), cup_hold=context.cup_hold(serve.side))
     assert motion.t is not None and motion.q is not None and motion.racket is not None
     p = serve.params
     t_full, q_full = motion.t, motion.q
     t_start = toss.t_lift + 0.005
-    ball0 = toss.mean_state(t_start) if toss_sample is None else toss.recorded_state_at(t_start, toss_sample)
+    # A recorded toss: the state at t_start whose flight passes through that toss's own
+    # recorded state at tau (TossModel.recorded_start_state), not its noisy state at t_start.
+    if toss_sample is None:
+        ball0 = toss.mean_state(t_start)
+    else:
+        ball0 = toss.recorded_start_state(toss_sample, t_start, p.tau, flight=context.flight)
     t_end = p.tau + FLIGHT_AFTER_CONTACT
     ball = simulate(
         BallState(ball0.p, ball0.v, np.zeros(3)),
@@ -668,6 +698,7 @@ def evaluate_motion(
         reward=terms,
         metrics=metrics,
         timings_ms=timings,
+        cup_hold=context.cup_hold(serve.side),
     )
 
 
@@ -760,7 +791,9 @@ def evaluate_robust(
     """Evaluate a serve on ``tosses`` recorded tosses drawn without replacement.
 
     The motion is planned once (the target is tied to the mean toss path); only the
-    ball prediction is repeated per toss. Rewards are averaged; the serve is legal when
+    ball prediction is repeated per toss: each toss's ball passes through that
+    recording's own state at tau (:meth:`studio.toss.TossModel.recorded_start_state`).
+    Rewards are averaged; the serve is legal when
     at least ``min_legal_fraction`` of the tosses are legal.
     """
     if not (0.0 < min_legal_fraction <= 1.0):
@@ -828,6 +861,9 @@ def report_markdown(ev: Evaluation) -> tuple[str, str, str]:
         for c in ev.legality.checks:
             rows.append(f"| {'pass' if c.passed else '**FAIL**'} | {c.label} | {c.penalty:g} | {c.detail} |")
         checks = "\n".join(rows)
+    if ev.cup_hold is not None:  # the robot's own check, outside the ITTF chain (no penalty)
+        cup = f"{'pass' if ev.cup_hold.passed else '**FAIL**'} | ball stays in cup (preparation + toss) | none | {ev.cup_hold.detail}"
+        checks += f"\n| {cup} |" if ev.legality is not None else f"\n\n| | robot check | penalty | detail |\n|---|---|---|---|\n| {cup} |"
     m = ev.metrics
     lines = ["| metric | value |", "|---|---|"]
     for k, val in ev.reward.as_dict().items():

@@ -11,9 +11,22 @@ Format (``DESIGN.md``, schema ``serve-studio/library@1``):
   planned with, and when given the peak joint ``efforts`` of its motion), ``created`` (UTC ISO time), ``usage`` counters and the
   ``arrays`` file name;
 - ``<id>.npz`` per serve (plain arrays, no pickled objects): ``t`` (M,) [s] and ``u``
-  (M, 8) joint commands of toss + strike + return at 1 kHz on the toss clock, ``q``
-  (M, 8) predicted joint positions, ``ball_t`` (K,), ``ball_p`` (K, 3) predicted ball
-  path, ``joint_names``.
+  (M, 8) joint commands of preparation + toss + strike + return + final hold at 1 kHz
+  on one clock from 0, ``q`` (M, 8) predicted joint positions, ``t_toss`` (when the toss
+  starts), ``ball_t`` (K,), ``ball_p`` (K, 3) predicted ball path on the same clock,
+  ``joint_names``.
+
+Command semantics (what a controller must do for ``q`` to be the prediction): send
+``u[k]`` at ``t[k]`` and hold it until ``t[k+1]`` (zero-order hold at 1 kHz, as
+:meth:`studio.robot.JointDynamics.simulate` discretizes the joint model
+q'' = wn^2 (u - q) - 2 zeta wn q'); ``q[k]`` is the predicted joint position at ``t[k]``,
+before ``u[k]`` acts. Each ``u[k]`` is the planned smooth command at the interval's
+midpoint t_k + dt/2, so the held steps follow the smooth plan to O(dt^2); a controller
+that interpolates linearly from ``u[k]`` at t_k to ``u[k+1]`` at t_k+1 runs the motion
+~0.5 ms late. The arrays end with the last (rest) command held until the predicted joints
+are within :data:`studio.planner.SETTLE` (|q - u| <= 0.1 mm / 0.1 mrad, |q'| <= 1 mm/s /
+1 mrad/s on the last two samples): a controller may stop streaming after ``t[-1]``. The
+entry's ``cup_hold`` records the ball-in-cup check of preparation + toss (times on ``t``).
 
 Writes are atomic (temporary file, then rename); loads validate the schema and fail with
 a :class:`~studio.errors.DataFileError` naming the file and the field; arrays are read
@@ -69,6 +82,14 @@ def robot_identity(limit_scale: LimitScale | None = None) -> dict[str, Any]:
     out["limit_scale"] = scale.to_json()
     out["limits"] = {order: [float(getattr(j, order)) * getattr(scale, order) for j in joints] for order in ("velocity", "acceleration", "jerk")}
     return out
+
+
+def _shipped_dynamics() -> Any:
+    """The joint model (:class:`studio.robot.JointDynamics`) of the shipped robot TOML."""
+    from studio.robot import JointDynamics
+
+    joints = load_spec().actuated_joints
+    return JointDynamics(tuple(j.name for j in joints), np.array([j.wn for j in joints]), np.array([j.zeta for j in joints]))
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -242,10 +263,11 @@ class ServeLibrary:
         """Export an evaluated serve (:class:`studio.evaluate.Evaluation`) with its plan.
 
         ``preparation``: the :class:`studio.planner.PreparationPhase` before the toss
-        (``EvaluationContext.preparation(side)``); the arrays then hold preparation + toss +
-        strike + return to rest on one clock from 0 (DESIGN.md), the toss starting at
-        ``t_toss`` (stored in the NPZ and the index). Without it the arrays start with the
-        toss (``t_toss`` = 0).
+        (default: the one the evaluation was planned with, ``evaluation.motion.preparation``,
+        i.e. ``EvaluationContext.preparation(side)``); the arrays then hold preparation +
+        toss + strike + return to rest + final hold on one clock from 0 (DESIGN.md,
+        :func:`studio.planner.serve_arrays`), the toss starting at ``t_toss`` (stored in the
+        NPZ and the index). Without any, the arrays start with the toss (``t_toss`` = 0).
 
         ``efforts``: the motion's :class:`studio.evaluate.EffortReport`; its peak force/torque
         per joint, time and ratio to the nominal effort go into the entry's ``robot.efforts``.
@@ -255,19 +277,16 @@ class ServeLibrary:
         ev = evaluation
         if ev.t is None or ev.u is None or ev.q is None:
             raise InvalidInputError(f"serve {ev.serve.name!r} has no motion plan to export ({ev.status}: {ev.reason})")
-        t = np.asarray(ev.t, dtype=float)
-        u = np.asarray(ev.u, dtype=float)
-        q = np.asarray(ev.q, dtype=float)
-        t_toss = 0.0
+        from studio.planner import SETTLE, serve_arrays  # casadi & pinocchio: not at import (dashboard)
+
+        motion = getattr(ev, "motion", None)
+        preparation = preparation if preparation is not None else getattr(motion, "preparation", None)
         if preparation is not None:
             pu, pq = np.asarray(preparation.u, dtype=float), np.asarray(preparation.q, dtype=float)
             if pu.ndim != 2 or pu.shape[1:] != (8,) or pq.shape != pu.shape:
                 raise InvalidInputError(f"preparation arrays must be (P, 8), got {pu.shape} and {pq.shape}")
-            dt = float(t[1] - t[0]) if t.size > 1 else 1e-3
-            t_toss = pu.shape[0] * dt
-            t = np.concatenate([np.arange(pu.shape[0]) * dt, t - t[0] + t_toss])
-            u = np.vstack([pu, u])
-            q = np.vstack([pq, q])
+        arr = serve_arrays(ev.t, ev.u, ev.q, getattr(motion, "qd", None), _shipped_dynamics(), preparation=preparation)
+        t, u, q, t_toss = arr.t, arr.u, arr.q, arr.t_toss
         entries = self.entries()  # validate before writing anything
         self.folder.mkdir(parents=True, exist_ok=True)
         slug = re.sub(r"[^a-z0-9]+", "-", ev.serve.name.lower()).strip("-")[:40] or "serve"
@@ -305,7 +324,11 @@ class ServeLibrary:
             "usage": {"used": 0, "won": 0, "lost": 0, "aces": 0},
             "arrays": f"{sid}.npz",
             "t_toss": t_toss,
+            "settle": {"samples": arr.settle_samples, "position": SETTLE.position, "velocity": SETTLE.velocity},
         }
+        cup = getattr(ev, "cup_hold", None)
+        if cup is not None and preparation is not None and preparation is getattr(motion, "preparation", None):
+            entry["cup_hold"] = cup.to_json()  # checked on this preparation, on the arrays' clock
         doc = {"schema": LIBRARY_SCHEMA, "serves": [e.data for e in entries] + [entry]}
         _atomic_write(self.index_path, (json.dumps(doc, indent=2) + "\n").encode("utf-8"))
         return LibraryEntry(entry, self.folder)

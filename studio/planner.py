@@ -82,6 +82,7 @@ import daqp
 import numpy as np
 import numpy.typing as npt
 
+from studio.cup_hold import CupGrip, CupHoldCheck, check_cup_hold
 from studio.errors import InvalidInputError, checked_array
 from studio.kinematics_casadi import CasadiKinematics, build_kinematics
 from studio.robot import JointDynamics, JointLimits, Robot
@@ -1512,6 +1513,8 @@ class ServePlan:
     Times on the serve clock: t = 0 at the start of the preparation. Commands follow
     the planner's convention (``u[k]`` held over [t_k, t_k + dt), the underlying
     cubic at the interval midpoint); ``q``, ``qd`` are the predicted joint states at t_k.
+    A planned strike ends with the rest command held until the predicted joints are at
+    rest (:func:`settle_hold`, ``settle_samples`` samples).
     """
 
     t: FloatArray
@@ -1535,9 +1538,11 @@ class ServePlan:
     strike: Plan
     """The strike plan (status, reason, errors at tau, ...)."""
     max_preparation_tilt: float
-    """Largest angle [rad] of the racket normal from +Z during the preparation (the
-    preparation is a joint-space motion: the ball only stays in the cup if this is
-    small; see :func:`plan_serve`)."""
+    """Largest angle [rad] of the racket normal from +Z during the preparation."""
+    cup: CupHoldCheck | None = None
+    """Ball-in-cup check of preparation + toss up to the release (serve clock)."""
+    settle_samples: int = 0
+    """Samples of the final hold of the rest command (part of the arrays)."""
 
     @property
     def ok(self) -> bool:
@@ -1545,7 +1550,19 @@ class ServePlan:
         return self.strike.ok
 
 
-def _rest_to_rest(q0: FloatArray, q1: FloatArray, limits: JointLimits, dt: float) -> tuple[FloatArray, ...]:
+def _quintic(q0: FloatArray, q1: FloatArray, T: float, dt: float) -> tuple[FloatArray, ...]:
+    """Quintic minimum-jerk rest-to-rest motion q0 -> q1 (8,) of duration T [s] (a multiple
+    of dt), sampled at the interval midpoints: (u, ud, udd), each (T / dt, 8)."""
+    n = int(round(T / dt))
+    s = (np.arange(n) + 0.5) * dt / T
+    p = 10 * s**3 - 15 * s**4 + 6 * s**5
+    pd = (30 * s**2 - 60 * s**3 + 30 * s**4) / T
+    pdd = (60 * s - 180 * s**2 + 120 * s**3) / T**2
+    d = (q1 - q0)[None]
+    return q0[None] + p[:, None] * d, pd[:, None] * d, pdd[:, None] * d
+
+
+def _rest_to_rest(q0: FloatArray, q1: FloatArray, limits: JointLimits, dt: float) -> tuple[float, FloatArray, FloatArray, FloatArray]:
     """Quintic minimum-jerk rest-to-rest joint motion, duration chosen from the limits
     (peak |u'| = 1.875 D/T, |u''| = 5.774 D/T^2, |u'''| = 60 D/T^3 for a distance D),
     rounded up to dt. Returns (T, u, ud, udd) sampled at the interval midpoints."""
@@ -1553,14 +1570,13 @@ def _rest_to_rest(q0: FloatArray, q1: FloatArray, limits: JointLimits, dt: float
     T = float(np.max(np.concatenate([
         1.875 * D / limits.velocity, np.sqrt(5.774 * D / limits.acceleration), np.cbrt(60.0 * D / limits.jerk), [dt],
     ])))
-    T = math.ceil(T / dt) * dt
-    n = int(round(T / dt))
-    s = (np.arange(n) + 0.5) * dt / T
-    p = 10 * s**3 - 15 * s**4 + 6 * s**5
-    pd = (30 * s**2 - 60 * s**3 + 30 * s**4) / T
-    pdd = (60 * s - 180 * s**2 + 120 * s**3) / T**2
-    d = (q1 - q0)[None]
-    return T, q0[None] + p[:, None] * d, pd[:, None] * d, pdd[:, None] * d
+    T = math.ceil(T / dt - 1e-9) * dt
+    u, ud, udd = _quintic(q0, q1, T, dt)
+    return T, u, ud, udd
+
+
+MAX_PREPARATION_TIME: Final[float] = 10.0
+"""Longest preparation motion tried [s] before giving up on keeping the ball in the cup."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -1580,6 +1596,10 @@ class PreparationPhase:
     """Predicted joint velocities (P, 8)."""
     max_tilt: float
     """Largest racket-normal tilt from vertical over the phase [rad] (the ball rides in the cup)."""
+    motion_time: float = 0.0
+    """Duration of the quintic [s] (the hold follows)."""
+    cup: CupHoldCheck | None = None
+    """The ball-in-cup check of the whole phase (motion and hold), on its clock (t = 0 at its start)."""
 
     @property
     def duration(self) -> float:
@@ -1587,26 +1607,206 @@ class PreparationPhase:
         return self.u.shape[0] * COMMAND_DT
 
 
+def _held_quintic(robot: Robot, q0: FloatArray, u1: FloatArray, T: float, n_hold: int, dt: float) -> tuple[FloatArray, ...]:
+    """Quintic q0 -> u1 of duration T [s], then ``n_hold`` samples holding u1, with the
+    predicted states from rest at q0: (u, ud, udd, X (P, 8, 2))."""
+    pu, pud, pudd = _quintic(q0, u1, T, dt)
+    pu = np.vstack([pu, np.repeat(u1[None], n_hold, axis=0)])
+    pud = np.vstack([pud, np.zeros((n_hold, 8))])
+    pudd = np.vstack([pudd, np.zeros((n_hold, 8))])
+    return pu, pud, pudd, robot.dynamics.simulate(pu, dt, np.stack([q0, np.zeros(8)], axis=1))
+
+
+def _cup_check(robot: Robot, parts: tuple[FloatArray, ...], dt: float, grip: CupGrip) -> CupHoldCheck:
+    """Ball-in-cup check of :func:`_held_quintic`'s output."""
+    pu, _, _, X = parts
+    return check_cup_hold(robot, np.arange(pu.shape[0]) * dt, pu, X[:, :, 0], X[:, :, 1], grip=grip)
+
+
+def _cup_safe_duration(
+    robot: Robot, q0: FloatArray, u1: FloatArray, T0: float, n_hold: int, dt: float, grip: CupGrip
+) -> tuple[float, tuple[FloatArray, ...], CupHoldCheck]:
+    """Shortest quintic duration T >= T0 [s] (on the dt grid) whose motion and hold keep
+    the ball in the cup: doubling from T0 until the check passes, then bisection down to
+    dt. The returned duration is always a checked one (the ratio need not be monotone in
+    T, so it is the shortest found, not proven shortest).
+
+    Raises:
+        InvalidInputError: not even :data:`MAX_PREPARATION_TIME` keeps the ball in the cup
+            (e.g. a start or end pose tilted beyond the cone).
+    """
+    parts = _held_quintic(robot, q0, u1, T0, n_hold, dt)
+    check = _cup_check(robot, parts, dt, grip)
+    lo = hi = T0
+    while not check.passed:
+        if hi >= MAX_PREPARATION_TIME:
+            raise InvalidInputError(f"preparation: the ball does not stay in the cup even with a {hi:.2f} s motion ({check.detail})")
+        lo, hi = hi, min(math.ceil(2.0 * hi / dt) * dt, MAX_PREPARATION_TIME)
+        parts = _held_quintic(robot, q0, u1, hi, n_hold, dt)
+        check = _cup_check(robot, parts, dt, grip)
+    best = (hi, parts, check)
+    while best[0] - lo > 1.5 * dt:
+        mid = math.ceil(0.5 * (lo + best[0]) / dt - 1e-9) * dt
+        parts = _held_quintic(robot, q0, u1, mid, n_hold, dt)
+        check = _cup_check(robot, parts, dt, grip)
+        if check.passed:
+            best = (mid, parts, check)
+        else:
+            lo = mid
+    return best
+
+
 def preparation_phase(
-    robot: Robot, u_toss0: npt.ArrayLike, *, limits: JointLimits | None = None, q_start: npt.ArrayLike | None = None, settle: float = 0.3, dt: float = COMMAND_DT
+    robot: Robot,
+    u_toss0: npt.ArrayLike,
+    *,
+    limits: JointLimits | None = None,
+    q_start: npt.ArrayLike | None = None,
+    settle: float = 0.3,
+    dt: float = COMMAND_DT,
+    grip: CupGrip | None = None,
 ) -> PreparationPhase:
     """The preparation of the paper: from ``q_start`` (default ``robot.q_flat``, the pose
     at the ball feeder) a rest-to-rest quintic to the toss's first command ``u_toss0``
     (8,), then ``settle`` seconds of hold so the joints are at rest when the toss starts
-    (its predicted states assume so). The racket tilt is not constrained: see
-    :attr:`PreparationPhase.max_tilt`."""
+    (its predicted states assume so).
+
+    The ball rides in the cup all along: the quintic is the shortest (on the 1 kHz grid)
+    that is within the joint limits *and* keeps the cup's specific force inside the
+    holding cone ``grip`` (default: the robot's cup, :class:`studio.cup_hold.CupGrip`) at
+    every sample of the motion and the hold; the check is :attr:`PreparationPhase.cup`.
+
+    Raises:
+        InvalidInputError: bad inputs, or no duration up to :data:`MAX_PREPARATION_TIME`
+            keeps the ball in the cup.
+    """
     if not (math.isfinite(settle) and settle >= 0.0):
         raise InvalidInputError(f"preparation: settle must be >= 0 s, got {settle}")
     q0 = _vec(robot.q_flat if q_start is None else q_start, (8,), "preparation q_start")
     u1 = _vec(u_toss0, (8,), "preparation u_toss0")
-    _, pu, pud, pudd = _rest_to_rest(q0, u1, limits if limits is not None else robot.limits, dt)
-    n_hold = int(round(settle / dt))
-    pu = np.vstack([pu, np.repeat(u1[None], n_hold, axis=0)])
-    pud = np.vstack([pud, np.zeros((n_hold, 8))])
-    pudd = np.vstack([pudd, np.zeros((n_hold, 8))])
-    X = robot.dynamics.simulate(pu, dt, np.stack([q0, np.zeros(8)], axis=1))
+    T0, *_ = _rest_to_rest(q0, u1, limits if limits is not None else robot.limits, dt)
+    grip = grip if grip is not None else CupGrip.of(robot)
+    T, (pu, pud, pudd, X), check = _cup_safe_duration(robot, q0, u1, T0, int(round(settle / dt)), dt, grip)
     tilt = [math.acos(float(np.clip(robot.fk(qq).normal[2], -1.0, 1.0))) for qq in X[::10, :, 0]]
-    return PreparationPhase(pu, pud, pudd, X[:, :, 0], X[:, :, 1], max(tilt) if tilt else 0.0)
+    return PreparationPhase(pu, pud, pudd, X[:, :, 0], X[:, :, 1], max(tilt) if tilt else 0.0, T, check)
+
+
+@dataclass(frozen=True, slots=True)
+class SettleTolerance:
+    """When the predicted joints count as at rest on the last command (per joint, in the
+    joint's unit: gantry [m, m/s], arm [rad, rad/s])."""
+
+    position: float = 1e-4
+    """Largest |q - u_end| [m | rad] (0.1 mm, 0.1 mrad)."""
+    velocity: float = 1e-3
+    """Largest |q'| [m/s | rad/s] (1 mm/s, 1 mrad/s)."""
+    horizon: float = 0.2
+    """The state must stay within the tolerances this long after the end [s] (the joint
+    model is under-damped: zeta 0.85-0.9)."""
+    max_hold: float = 3.0
+    """Longest hold tried [s]."""
+
+    def __post_init__(self) -> None:
+        for name in ("position", "velocity", "horizon", "max_hold"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise InvalidInputError(f"SettleTolerance.{name} must be finite and > 0, got {v!r}")
+
+
+SETTLE: Final[SettleTolerance] = SettleTolerance()
+"""Default rest tolerances of exported serves."""
+
+
+def settle_hold(u_end: npt.ArrayLike, X_end: npt.ArrayLike, dynamics: JointDynamics, *, dt: float = COMMAND_DT, tol: SettleTolerance = SETTLE) -> FloatArray:
+    """Predicted states (n, 8, 2) at t_end + dt, ..., t_end + n dt of the joints holding the
+    command ``u_end`` (8,) that is sent at t_end, from their state ``X_end`` (8, 2) at t_end.
+
+    n is the smallest count such that the last two samples (so a finite difference over the
+    last interval too) and every sample over ``tol.horizon`` after them are within ``tol``
+    (0 if the motion already ends that way).
+
+    Raises:
+        InvalidInputError: not settled within ``tol.max_hold``.
+    """
+    u1 = _vec(u_end, (8,), "settle_hold u_end")
+    X0 = _vec(X_end, (8, 2), "settle_hold X_end")
+    n_max, n_look = int(math.ceil(tol.max_hold / dt)), int(math.ceil(tol.horizon / dt))
+    # exact free response of e = q - u1 under the held command, all samples at once
+    times: FloatArray = np.arange(n_max + n_look + 1, dtype=np.float64)[:, None] * dt
+    phi = _free_response(dynamics.wn, dynamics.zeta, times)
+    S = np.einsum("jnab,nb->jna", phi, np.stack([X0[:, 0] - u1, X0[:, 1]], axis=1))
+    S[:, :, 0] += u1
+    ok = np.all((np.abs(S[:, :, 0] - u1) <= tol.position) & (np.abs(S[:, :, 1]) <= tol.velocity), axis=1)
+    bad = np.flatnonzero(~ok[: n_max + n_look])
+    if bad.size == 0:
+        return S[1:1]
+    n = int(bad[-1]) + 2  # after the last bad sample: one good sample, then the end sample
+    if n > n_max:
+        raise InvalidInputError(f"settle_hold: the joints are not within {tol} after {tol.max_hold} s of hold")
+    return S[1 : n + 1]
+
+
+@dataclass(frozen=True, eq=False)
+class ServeArrays:
+    """A whole serve on one 1 kHz clock as exported (:mod:`studio.library`): preparation
+    (if any), toss, strike, return to rest and a final hold of the rest command until the
+    predicted joints are at rest (:func:`settle_hold`)."""
+
+    t: FloatArray
+    """Sample times (N,) [s], from 0 when a preparation leads (else the motion's clock)."""
+    u: FloatArray
+    """Commands (N, 8) [m | rad], u[k] sent at t_k and held until t_k+1."""
+    q: FloatArray
+    """Predicted joint positions at t_k (N, 8) [m | rad]."""
+    qd: FloatArray
+    """Predicted joint velocities at t_k (N, 8) [m/s | rad/s]."""
+    t_toss: float
+    """Time of the first toss command [s]."""
+    settle_samples: int
+    """Samples of the final hold appended after the motion's last command."""
+
+
+def serve_arrays(
+    t: npt.ArrayLike, u: npt.ArrayLike, q: npt.ArrayLike, qd: npt.ArrayLike | None, dynamics: JointDynamics, *,
+    preparation: PreparationPhase | None = None, tol: SettleTolerance = SETTLE,
+) -> ServeArrays:
+    """Assemble the exported arrays of a motion (toss clock: times t (M,) [s] at 1 kHz,
+    commands u, predicted q and qd (M, 8); qd None: central differences of q): the
+    preparation before it (times shifted so that it starts at 0), then the motion, then
+    the hold of its last command until the joints settle (``tol``)."""
+    T, U, Q = (np.asarray(a, dtype=float) for a in (t, u, q))
+    if T.ndim != 1 or T.size < 2 or U.shape != (T.size, 8) or Q.shape != U.shape:
+        raise InvalidInputError(f"serve_arrays: t (M >= 2,), u and q (M, 8) expected, got {T.shape}, {U.shape}, {Q.shape}")
+    dt = float(T[1] - T[0])
+    QD = np.gradient(Q, T, axis=0) if qd is None else np.asarray(qd, dtype=float)
+    tail = settle_hold(U[-1], np.stack([Q[-1], QD[-1]], axis=1), dynamics, dt=dt, tol=tol)
+    n = tail.shape[0]
+    T = np.concatenate([T, T[-1] + dt * np.arange(1, n + 1)])
+    U, Q, QD = np.vstack([U, np.repeat(U[-1:], n, axis=0)]), np.vstack([Q, tail[:, :, 0]]), np.vstack([QD, tail[:, :, 1]])
+    if preparation is None:
+        return ServeArrays(T, U, Q, QD, float(T[0]), n)
+    P = preparation.u.shape[0]
+    t_toss = P * dt
+    return ServeArrays(
+        np.concatenate([np.arange(P) * dt, T - T[0] + t_toss]), np.vstack([preparation.u, U]),
+        np.vstack([preparation.q, Q]), np.vstack([preparation.qd, QD]), t_toss, n,
+    )  # fmt: skip
+
+
+def serve_cup_check(robot: Robot, preparation: PreparationPhase, toss: object, *, grip: CupGrip | None = None) -> CupHoldCheck:
+    """The ball-in-cup check of preparation + toss on the serve clock (t = 0 at the start of
+    the preparation), at every 1 kHz sample before the toss's predicted release from the
+    cup (``toss.release.time``, where the normal load vanishes; the ball flies from then on).
+
+    ``toss``: a :class:`studio.toss.TossPrimitive` (u, X, release, dt)."""
+    dt = float(getattr(toss, "dt"))
+    tu, tX = np.asarray(getattr(toss, "u")), np.asarray(getattr(toss, "X"))
+    P = preparation.u.shape[0]
+    t = np.arange(P + tu.shape[0]) * dt
+    u = np.vstack([preparation.u, tu])
+    q, qd = np.vstack([preparation.q, tX[:, :, 0]]), np.vstack([preparation.qd, tX[:, :, 1]])
+    t_end = P * dt + float(getattr(toss, "release").time)
+    return check_cup_hold(robot, t, u, q, qd, t_end=t_end, grip=grip)
 
 
 def start_from_toss(toss: object, t_switch: float) -> tuple[StrikeStart, int]:
@@ -1639,12 +1839,13 @@ def plan_serve(
     1. preparation: rest-to-rest quintic in joint space from ``q_start`` (default: the
        robot's ``q_flat``, e.g. the pose at the ball feeder) to the toss's first command,
        then ``settle`` seconds of hold so the joints are at rest when the toss starts
-       (its predicted states assume so). It does not constrain the racket tilt: the
-       reported ``max_preparation_tilt`` tells whether the ball would stay in the cup;
+       (its predicted states assume so), slow enough to keep the ball in the cup
+       (:func:`preparation_phase`; ``cup`` checks preparation + toss up to the release);
     2. the toss commands ``toss.u`` up to the switch sample (``toss.index_at(t_switch)``);
     3. the strike from the toss's command and predicted joint state at the switch
        (the command state is moved from the sample's midpoint back to the sample time
-       with the toss's jerk), ending at rest at ``target.u_rest`` (return to rest).
+       with the toss's jerk), ending at rest at ``target.u_rest`` (return to rest),
+       then holding it until the predicted joints are at rest (:func:`settle_hold`).
 
     Args:
         planner: the strike planner.
@@ -1680,7 +1881,11 @@ def plan_serve(
     if strike.u.shape[0] == 0:
         su = sud = sudd = sq = sqd = np.zeros((0, 8))
     else:
-        su, sud, sudd, sq, sqd = strike.u, strike.ud, strike.udd, strike.q, strike.qd
+        tail = settle_hold(strike.u[-1], np.stack([strike.q[-1], strike.qd[-1]], axis=1), robot.dynamics, dt=dt)
+        n_tail = tail.shape[0]
+        su = np.vstack([strike.u, np.repeat(strike.u[-1:], n_tail, axis=0)])
+        sud, sudd = (np.vstack([a, np.zeros((n_tail, 8))]) for a in (strike.ud, strike.udd))
+        sq, sqd = np.vstack([strike.q, tail[:, :, 0]]), np.vstack([strike.qd, tail[:, :, 1]])
     u = np.vstack([pu, tu[:k], su])
     n = u.shape[0]
     return ServePlan(
@@ -1695,4 +1900,6 @@ def plan_serve(
         t_contact=t_sw + target.tau,
         strike=strike,
         max_preparation_tilt=prep.max_tilt,
+        cup=serve_cup_check(robot, prep, toss),
+        settle_samples=su.shape[0] - strike.u.shape[0],
     )

@@ -1673,6 +1673,82 @@ LIFT_FIT_WINDOW: Final[tuple[float, float]] = (0.10, 0.25)
 """Data used by the ``t_lift`` fit [s]: from this long before the earliest candidate
 to this long after the latest one."""
 
+LOCAL_FIT_HALF_WINDOW: Final[float] = 0.06
+"""Half width [s] of the window of a recording's own samples from which its ball state
+at a time in free flight is fitted (:meth:`TossModel.recorded_state_at`): 25 frames at
+200 Hz. With the +/-1.5 mm tracking noise of :class:`TossNoise` the fitted position
+scatters by ~0.5 mm and the velocity by ~9 mm/s per axis (the Savitzky-Golay velocity
+just after the lift: 46-78 mm/s); the drag's change over the window biases the
+velocity of every toss alike by ~2 mm/s."""
+
+LOCAL_FIT_ORDER: Final[int] = 2
+"""Polynomial order of that local fit (free flight: about constant acceleration)."""
+
+LOCAL_FIT_LIFT_MARGIN: Final[float] = 0.015
+"""The local fit window starts at least this long after ``t_lift`` [s], so that it
+holds free flight only (``t_lift`` scatters by ~2.5 ms, the release by ~1 ms)."""
+
+LOCAL_FIT_MIN_SAMPLES: Final[int] = 8
+"""Fewest recorded samples a local fit window must hold, else the toss is refused as
+not covering the time."""
+
+BACK_FLIGHT_STEP: Final[float] = 0.025
+"""Longest RK4 step [s] of the spinless flight integrated back from a recorded state
+(:meth:`TossModel.recorded_start_state`): :func:`studio.ball.simulate`'s forward flight
+then meets the recorded state within 1e-6 m (0.01 s: 1e-7 m, 2.5 times the cost)."""
+
+
+def _local_fit_state(
+    t: FloatArray, p: FloatArray, time: float, span: tuple[float, float], *, half_window: float, order: int
+) -> tuple[FloatArray, FloatArray]:
+    """Ball position [m] and velocity [m/s] (3,) at ``time`` [s] from a least-squares
+    polynomial (``order``) fitted per axis to the recorded samples ``t`` (M,) [s],
+    ``p`` (M, 3) [m] in ``[time - half_window, time + half_window]``.
+
+    Where that window leaves ``span`` = (lo, hi) [s] (free flight covered by the
+    recording) it is shifted inside it (nearest covered window, same width), so near
+    the lift or the recording's end the fit is one-sided; ``time`` itself must lie in
+    ``span`` (no extrapolation).
+
+    Raises:
+        InvalidInputError: ``time`` outside ``span``, ``span`` narrower than the window,
+            or fewer than :data:`LOCAL_FIT_MIN_SAMPLES` samples in it.
+    """
+    lo, hi = span
+    if not (lo - 1e-9 <= time <= hi + 1e-9):
+        raise InvalidInputError(f"time {time:.4f} s is not covered by the recording's free flight [{lo:.4f}, {hi:.4f}] s")
+    if hi - lo < 2.0 * half_window:
+        raise InvalidInputError(f"the recording's free flight [{lo:.4f}, {hi:.4f}] s is shorter than the {2 * half_window:.3f} s fit window")
+    w_lo = min(max(time - half_window, lo), hi - 2.0 * half_window)
+    sel = (t >= w_lo - 1e-9) & (t <= w_lo + 2.0 * half_window + 1e-9)
+    if np.count_nonzero(sel) < max(LOCAL_FIT_MIN_SAMPLES, order + 2):
+        raise InvalidInputError(
+            f"only {np.count_nonzero(sel)} recorded samples in [{w_lo:.4f}, {w_lo + 2 * half_window:.4f}] s "
+            f"(need {LOCAL_FIT_MIN_SAMPLES}): the recording does not cover {time:.4f} s"
+        )
+    coef = np.polynomial.polynomial.polyfit(t[sel] - time, p[sel], order)  # (order + 1, 3)
+    return coef[0].copy(), coef[1].copy()
+
+
+def _spinless_flight(p: FloatArray, v: FloatArray, t0: float, t1: float, flight: object, *, step: float = BACK_FLIGHT_STEP) -> tuple[FloatArray, FloatArray]:
+    """Positions [m] and velocities [m/s] (C, 3) at ``t1`` [s] of spinless flights from
+    ``p``, ``v`` (C, 3) at ``t0`` [s] in still air: classic RK4 on
+    ``flight.acceleration`` (a :class:`studio.ball.FlightModel`) with equal steps of at
+    most ``step`` [s]; ``t1 < t0`` integrates backwards in time."""
+    n = max(int(math.ceil(abs(t1 - t0) / step - 1e-9)), 1)
+    h = (t1 - t0) / n
+    w = np.zeros_like(v)
+    acc = flight.acceleration  # type: ignore[attr-defined]
+    p, v = np.array(p, dtype=float), np.array(v, dtype=float)
+    for _ in range(n):
+        k1 = acc(p, v, w)
+        k2 = acc(p, v + 0.5 * h * k1, w)
+        k3 = acc(p, v + 0.5 * h * k2, w)
+        k4 = acc(p, v + h * k3, w)
+        p = p + h * (v + h / 6.0 * (k1 + k2 + k3))
+        v = v + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return p, v
+
 
 def _align_recording(
     rec: TossRecording, z_nom: object, t_cross_nom: float, z_thr: float, t_rel_nom: float
@@ -1853,6 +1929,14 @@ class TossModel:
     """Statistical model of a toss from recordings (paper: mean path ``p_bar(t)``,
     ``t_lift`` and the spread of the ball around the mean).
 
+    Per-toss states: in free flight (from ``t_lift`` + :data:`LOCAL_FIT_LIFT_MARGIN`
+    to the end of a recording) a recorded toss's state at a time comes from its own
+    samples around that time (:meth:`recorded_state_at`, a local polynomial fit), not
+    from a state just after the lift flown forward: the velocity estimated there carries
+    ~50-80 mm/s of noise per axis, which spreads such predictions ~7 times wider at the
+    strike than the recordings themselves. Recordings measure positions only: the
+    states carry zero spin (the toss releases the ball without spin, ITTF Law 2.6.2).
+
     All times are on the primitive's command clock. Arrays are read-only.
     """
 
@@ -1886,6 +1970,8 @@ class TossModel:
     (diagnostic of the tracking calibration; not removed from the data)."""
     lift_fit_rms: float
     """RMS residual of the ``t_lift`` fit [m] (about the tracking noise when it fits)."""
+    _start_cache: dict[tuple[object, ...], FloatArray] = field(default_factory=dict, init=False, repr=False, compare=False)
+    """Cache of :meth:`_recorded_start_states` per (t_start, t_target, flight) (internal)."""
 
     def __post_init__(self) -> None:
         for fname in ("t", "p", "v", "a", "spread", "tosses_p", "tosses_v", "clock_offsets", "z_bias"):
@@ -1928,25 +2014,110 @@ class TossModel:
         return BallState(p=p, v=v, w=np.zeros(3))
 
     def ball_states_at(self, time: float) -> tuple[BallState, ...]:
-        """State of every recorded toss (smoothed) at ``time`` [s], zero spin."""
+        """State of every recorded toss at ``time`` [s] (:meth:`recorded_state_at`), zero spin."""
         return tuple(self.recorded_state_at(time, k) for k in range(self.n_tosses))
 
+    def _check_k(self, k: int) -> int:
+        """``k`` as a toss index in ``[0, n_tosses)``, else InvalidInputError."""
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not (0 <= k < self.n_tosses):
+            raise InvalidInputError(f"toss index must be an integer in [0, {self.n_tosses}), got {k!r}")
+        return int(k)
+
+    @property
+    def free_flight_start(self) -> float:
+        """Earliest time [s] whose recorded states come from the local fit:
+        ``t_lift`` + :data:`LOCAL_FIT_LIFT_MARGIN`."""
+        return float(self.t_lift) + LOCAL_FIT_LIFT_MARGIN
+
     def recorded_state_at(self, time: float, k: int) -> BallState:
-        """State of recorded toss ``k`` (smoothed) at ``time`` [s], zero spin (one toss of
-        :meth:`ball_states_at`, without computing the others: robust evaluations need one).
+        """State of recorded toss ``k`` at ``time`` [s] (command clock), zero spin.
+
+        In free flight (``time >= free_flight_start``): a polynomial of order
+        :data:`LOCAL_FIT_ORDER` fitted to the toss's own recorded positions within
+        +/- :data:`LOCAL_FIT_HALF_WINDOW` of ``time`` gives the position [m] and its
+        derivative the velocity [m/s] (the window is shifted to stay after
+        ``free_flight_start`` and before the recording's last sample: one-sided near
+        them, no extrapolation). Every time of the model's interval is covered by every
+        recording (the interval is their common one). Before that (ball in the cup or
+        just leaving it): the Savitzky-Golay-smoothed path, as before.
 
         Raises:
-            InvalidInputError: ``time`` outside the toss model's interval or ``k`` not a toss index.
+            InvalidInputError: ``time`` outside the toss model's interval, ``k`` not a
+                toss index, or a recording with a gap (too few samples in the window).
         """
         from studio.ball import BallState
 
-        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not (0 <= k < self.n_tosses):
-            raise InvalidInputError(f"toss index must be an integer in [0, {self.n_tosses}), got {k!r}")
+        k = self._check_k(k)
         tt = self._check_t(time)
-        k = int(k)
-        p = _hermite(self.t, self.tosses_p[k], self.tosses_v[k], np.array([tt]))[0]
-        v = np.array([np.interp(tt, self.t, self.tosses_v[k, :, j]) for j in range(3)])
+        if tt < self.free_flight_start:
+            p = _hermite(self.t, self.tosses_p[k], self.tosses_v[k], np.array([tt]))[0]
+            v = np.array([np.interp(tt, self.t, self.tosses_v[k, :, j]) for j in range(3)])
+            return BallState(p=p, v=v, w=np.zeros(3))
+        rec = self.recordings.recordings[k]
+        span = (self.free_flight_start, float(rec.t[-1]))
+        try:
+            p, v = _local_fit_state(rec.t, rec.p, tt, span, half_window=LOCAL_FIT_HALF_WINDOW, order=LOCAL_FIT_ORDER)
+        except InvalidInputError as exc:
+            raise InvalidInputError(f"toss model {self.primitive.name!r}, toss {rec.toss_id!r}: {exc}") from exc
         return BallState(p=p, v=v, w=np.zeros(3))
+
+    def recorded_spread_at(self, time: float) -> FloatArray:
+        """Per-axis standard deviation (3,) [m] (ddof = 1) of the recorded tosses'
+        positions at ``time`` [s] (:meth:`recorded_state_at`): the spread robust
+        evaluations fly the ball through at the strike."""
+        P = np.array([s.p for s in self.ball_states_at(time)])
+        return P.std(axis=0, ddof=1)
+
+    def recorded_start_state(self, k: int, t_start: float, t_target: float, *, flight: object | None = None) -> BallState:
+        """Ball state of recorded toss ``k`` at ``t_start`` [s] from which a spinless
+        flight in still air under ``flight`` (default :data:`studio.ball.DEFAULT_FLIGHT`)
+        passes through the toss's recorded state at ``t_target`` [s] (the strike time
+        tau): :meth:`recorded_state_at` at ``t_target`` integrated back to ``t_start``
+        (RK4, :data:`BACK_FLIGHT_STEP`). Robust evaluations fly the ball forward from it
+        with the racket moving, so up to the strike the ball follows this toss's own
+        recording (within ~1 mm at ``t_target``; earlier it departs by the room air flow
+        and the fitted velocity's noise times the time before ``t_target``, a few mm).
+
+        ``t_target`` before :attr:`free_flight_start` (or not after ``t_start``): the
+        toss's state at ``t_start`` itself (no flight to aim at).
+
+        Raises:
+            InvalidInputError: times outside the model's interval, bad ``k``.
+        """
+        from studio.ball import BallState
+
+        k = self._check_k(k)
+        t0, t1 = self._check_t(t_start), self._check_t(t_target)
+        if t1 <= t0 or t1 < self.free_flight_start:
+            return self.recorded_state_at(t0, k)
+        X = self._recorded_start_states(t0, t1, flight)
+        return BallState(p=X[k, :3], v=X[k, 3:], w=np.zeros(3))
+
+    def _recorded_start_states(self, t_start: float, t_target: float, flight: object | None) -> FloatArray:
+        """All tosses' :meth:`recorded_start_state` as (K, 6) ``[p, v]`` [m, m/s], cached
+        per (t_start, t_target, flight): a robust evaluation asks for each toss in turn."""
+        from studio import ball
+
+        fl = ball.DEFAULT_FLIGHT if flight is None else flight
+        try:
+            key: tuple[object, ...] | None = (t_start, t_target, fl)
+            hash(key)
+        except TypeError:
+            key = None
+        cached = self._start_cache.get(key) if key is not None else None
+        if cached is not None:
+            return cached
+        states = self.ball_states_at(t_target)
+        p1 = np.array([s.p for s in states])
+        v1 = np.array([s.v for s in states])
+        p0, v0 = _spinless_flight(p1, v1, t_target, t_start, fl)
+        X = np.concatenate([p0, v0], axis=1)
+        X.setflags(write=False)
+        if key is not None:
+            if len(self._start_cache) >= 256:
+                self._start_cache.clear()
+            self._start_cache[key] = X
+        return X
 
     def sample(self, time: float, rng: np.random.Generator, *, method: Literal["gaussian", "recorded"] = "gaussian") -> BallState:
         """A random ball state at ``time`` [s], zero spin.
@@ -2193,6 +2364,9 @@ def toss_report(side: TossSide = "right", csv_path: str | Path | None = None, *,
                 f"  spread {dt_after:.1f} s after the lift: x {sp[0]:.1f}, y {sp[1]:.1f}, z {sp[2]:.1f} mm "
                 f"(|.| {float(np.linalg.norm(sp)):.1f} mm), ball at z = {model.mean_state(tq).p[2]:.3f} m"
             )
+            if tq >= model.free_flight_start:
+                rs = model.recorded_spread_at(tq) * 1e3
+                lines.append(f"    recorded states there (each toss's own samples +/- {LOCAL_FIT_HALF_WINDOW * 1e3:.0f} ms): |spread| {float(np.linalg.norm(rs)):.1f} mm")
     return "\n".join(lines)
 
 

@@ -78,6 +78,9 @@ def test_json_and_scene_of_a_legal_serve(context: EvaluationContext) -> None:
     out = ev.to_json()
     for key in ("legal", "failed_check", "reward", "terms", "second_bounce", "net_clearance", "max_height", "planner"):
         assert key in out
+    # the robot's own check beside the ITTF chain: the ball stays in the cup until the release
+    assert out["cup_hold"]["passed"] and out["cup_hold"]["worst_ratio"] <= out["cup_hold"]["limit"]
+    assert "pass | ball stays in cup (preparation + toss) | none | worst f_t/f_n" in report_markdown(ev)[1]
     assert out["failed_check"] is None and out["planner"]["status"] == "ok"
     for key in ("p", "v", "w", "topspin", "sidespin"):
         assert key in out["second_bounce"]
@@ -164,7 +167,8 @@ def test_effort_report_of_a_planned_serve(context: EvaluationContext) -> None:
     motion = plan_motion(load_serve(Path(__file__).resolve().parent.parent / "examples" / "serves" / "topspin_right.json"), context)
     rep = effort_report(motion, context.robot)
     assert rep is not None and rep.names == context.robot.joint_names
-    assert np.all(rep.peak >= 0) and np.all((rep.at >= motion.t[0]) & (rep.at <= motion.t[-1]))
+    t_end = motion.preparation.duration + motion.t[-1] + 0.3  # on the exported clock: preparation first, final hold last
+    assert np.all(rep.peak >= 0) and np.all((rep.at >= 0.0) & (rep.at <= t_end))
     np.testing.assert_allclose(rep.usage, rep.peak / context.robot.effort_limits)
     name, use = rep.worst
     assert use == pytest.approx(rep.usage.max()) and name in rep.names
@@ -222,3 +226,27 @@ def test_mujoco_rollout_cannot_replay_a_recorded_toss(context: EvaluationContext
     serve = load_serve(EXAMPLES[0])
     with pytest.raises(InvalidInputError, match="MuJoCo rollout tosses the ball from the cup"):
         evaluate_serve(serve, context, toss_sample=0, mujoco=True)
+
+
+def test_robust_evaluation_flies_each_toss_through_its_own_recording(context: EvaluationContext) -> None:
+    """Each recorded toss's ball reaches the strike where that recording has it (the state
+    from its own samples around tau), not where a flight from its noisy state just after
+    the lift would put it (39-49 mm away, median)."""
+    serve = load_serve(EXAMPLES[0])
+    tau = serve.params.tau
+    toss = context.toss_model(serve.side)
+    robust = evaluate_robust(serve, context, tosses=4, rng=np.random.default_rng(5))
+    for k, ev in zip(robust.samples, robust.evaluations):
+        assert ev.ball is not None
+        start = toss.recorded_start_state(k, toss.t_lift + 0.005, tau, flight=context.flight)
+        assert np.allclose(ev.ball.p[0], start.p) and np.allclose(ev.ball.v[0], start.v)
+        t_before = tau - 0.01  # before the racket reaches the ball
+        p_before = np.array([np.interp(t_before, ev.ball.t, ev.ball.p[:, j]) for j in range(3)])
+        assert np.linalg.norm(p_before - toss.recorded_state_at(t_before, k).p) < 1.5e-3
+        rec = toss.recordings.recordings[k]  # on the command clock: its raw samples around tau
+        near = np.abs(rec.t - tau) <= 0.03
+        p_rec = np.array([np.polyval(np.polyfit(rec.t[near] - tau, rec.p[near, j], 2), 0.0) for j in range(3)])
+        hits = ev.ball.events_of("racket")
+        assert hits and abs(hits[0].t - tau) < 0.01
+        p_hit_rec = p_rec + toss.recorded_state_at(tau, k).v * (hits[0].t - tau)
+        assert np.linalg.norm(hits[0].p - p_hit_rec) < 3e-3

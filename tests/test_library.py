@@ -29,9 +29,12 @@ def test_export_and_read_back_is_identical(tmp_path: Path, evaluation) -> None: 
     assert again.serve.params == evaluation.serve.params
     assert again.serve.side == evaluation.serve.side and again.serve.name == evaluation.serve.name
     arrays = again.arrays()
-    np.testing.assert_array_equal(arrays["t"], evaluation.t)
-    np.testing.assert_array_equal(arrays["u"], evaluation.u)
-    np.testing.assert_array_equal(arrays["q"], evaluation.q)
+    P, M = round(float(arrays["t_toss"]) / 1e-3), len(evaluation.t)  # the evaluation's preparation leads
+    assert P == evaluation.motion.preparation.u.shape[0] and entry.data["t_toss"] == float(arrays["t_toss"])
+    np.testing.assert_allclose(arrays["t"][P : P + M], evaluation.t + P * 1e-3, atol=1e-12)
+    np.testing.assert_array_equal(arrays["u"][P : P + M], evaluation.u)
+    np.testing.assert_array_equal(arrays["q"][P : P + M], evaluation.q)
+    assert len(arrays["t"]) == P + M + entry.data["settle"]["samples"]  # then the final hold
     np.testing.assert_array_equal(arrays["ball_p"], evaluation.ball.p)
     assert np.all(np.diff(arrays["t"]) == pytest.approx(1e-3))  # 1 kHz
     assert again.data["legal"] is True and again.data["reward"] == pytest.approx(evaluation.reward.total)
@@ -52,11 +55,56 @@ def test_export_holds_preparation_toss_and_strike_on_one_clock(tmp_path: Path, e
     assert entry.data["t_toss"] == pytest.approx(P * 1e-3) and float(a["t_toss"]) == pytest.approx(P * 1e-3)
     assert a["t"][0] == 0.0 and np.all(np.diff(a["t"]) == pytest.approx(1e-3))  # one 1 kHz clock from 0
     np.testing.assert_allclose(a["q"][0], context.robot.q_flat, atol=1e-12)  # starts at rest at the feeder pose
-    np.testing.assert_array_equal(a["u"][P:], evaluation.u)  # then the toss, strike and return, unchanged
+    M = len(evaluation.u)
+    np.testing.assert_array_equal(a["u"][P : P + M], evaluation.u)  # then the toss, strike and return, unchanged
+    np.testing.assert_array_equal(a["u"][P + M :], np.repeat(evaluation.u[-1:], len(a["u"]) - P - M, axis=0))  # then the hold
     np.testing.assert_allclose(a["u"][P - 1], evaluation.u[0], atol=1e-12)  # the hold is at the toss's first command
     np.testing.assert_allclose(a["q"][P - 1], evaluation.u[0], atol=1e-6)  # and the joints have settled there
     np.testing.assert_allclose(a["ball_t"], evaluation.ball.t - evaluation.t[0] + P * 1e-3)  # ball on the same clock
     assert prep.duration > 0.3 and prep.max_tilt < np.radians(45)
+    assert prep.cup is not None and prep.cup.passed and prep.duration == pytest.approx(prep.motion_time + 0.3)
+
+
+def test_exported_arrays_end_with_the_joints_at_rest(tmp_path: Path, evaluation) -> None:  # type: ignore[no-untyped-def]
+    """numpy only on the NPZ: the last command is held until the predicted joints are within
+    0.1 mm / 0.1 mrad of it and move less than 1 mm/s / 1 mrad/s (finite differences)."""
+    entry = ServeLibrary(tmp_path / "lib").add(evaluation)
+    with np.load(tmp_path / "lib" / entry.data["arrays"], allow_pickle=False) as npz:
+        t, u, q = npz["t"], npz["u"], npz["q"]
+    dt = 1e-3
+    assert np.all(np.abs(np.diff(t) - dt) < 1e-9)  # one 1 kHz clock, the hold included
+    np.testing.assert_allclose(u[-1], evaluation.u[-1], atol=0)  # the rest command
+    assert np.all(np.abs(q[-2:] - u[-1]) <= 1e-4)  # position
+    assert np.all(np.abs(np.diff(q[-3:], axis=0)) / dt <= 1e-3)  # speed over the last two intervals
+    n = entry.data["settle"]["samples"]
+    assert entry.data["settle"] == {"samples": n, "position": 1e-4, "velocity": 1e-3}
+    assert 50 <= n <= 300 and np.all(u[-n - 1 :] == u[-1])  # the hold was needed, and is a hold
+    end = len(t) - n - 1  # where the return's commands end: the joints were still moving
+    assert np.abs(q[end] - u[-1]).max() > 3e-3 and np.abs(q[end] - q[end - 1]).max() / dt > 0.1
+
+
+def test_exported_efforts_are_on_the_npz_clock_and_cover_the_preparation(tmp_path: Path, evaluation) -> None:  # type: ignore[no-untyped-def]
+    """The effort report equals RNEA recomputed from the exported arrays (speeds by central
+    differences of q, accelerations from the joint model), with peak times on the NPZ's t."""
+    from studio.evaluate import effort_report
+    from studio.robot import load_robot
+
+    robot = load_robot()
+    rep = effort_report(evaluation.motion, robot)
+    entry = ServeLibrary(tmp_path / "lib").add(evaluation, efforts=rep)
+    with np.load(tmp_path / "lib" / entry.data["arrays"], allow_pickle=False) as npz:
+        t, u, q = npz["t"], npz["u"], npz["q"]
+    qd = np.gradient(q, t, axis=0)
+    dyn = robot.dynamics
+    tau = np.abs(robot.joint_efforts(q, qd, dyn.wn**2 * (u - q) - 2 * dyn.zeta * dyn.wn * qd))
+    np.testing.assert_allclose(rep.peak, tau.max(axis=0), rtol=0.02)
+    for j in range(8):  # each reported peak time is on the NPZ clock, where the recomputed efforts peak too
+        k = int(np.searchsorted(t, rep.at[j]))
+        assert abs(t[k] - rep.at[j]) < 1e-9 and tau[max(k - 2, 0) : k + 3, j].max() >= 0.98 * tau[:, j].max()
+    assert entry.data["robot"]["efforts"]["at"] == pytest.approx(list(rep.at))
+    P = round(float(entry.data["t_toss"]) / 1e-3)
+    prep_peak = tau[:P].max(axis=0)  # the preparation is part of the motion reported
+    assert np.all(rep.peak >= 0.98 * prep_peak) and t[P] > 0.8
 
 
 def test_corrupt_index_is_rejected_with_file_and_field(tmp_path: Path, evaluation) -> None:  # type: ignore[no-untyped-def]

@@ -211,3 +211,48 @@ def test_plan_serve_is_one_continuous_trajectory(robot, planner) -> None:  # typ
     np.testing.assert_allclose(serve.u[-1], robot.q_rest, atol=1e-9)
     assert serve.t_contact == pytest.approx(serve.t_switch + 0.5)
     assert serve.max_preparation_tilt < math.radians(5.0)
+    # The ball stays in the cup up to the release; the arrays end with the joints at rest.
+    assert serve.cup is not None and serve.cup.passed and serve.cup.t_end == pytest.approx(serve.t_toss + toss.release.time)
+    assert serve.settle_samples > 50 and np.all(serve.u[-serve.settle_samples :] == serve.u[-1])
+    assert np.all(np.abs(serve.q[-2:] - serve.u[-1]) <= 1e-4) and np.all(np.abs(serve.qd[-2:]) <= 1e-3)
+    assert len(serve.t) == len(serve.u) == len(serve.q) == len(serve.qd) == len(serve.ud) == len(serve.udd)
+
+
+def test_settle_hold_is_the_shortest_hold_to_rest(robot) -> None:  # type: ignore[no-untyped-def]
+    from studio.planner import SETTLE, SettleTolerance, settle_hold
+
+    X0 = np.stack([robot.q_rest - 0.012, np.full(8, 0.4)], axis=1)  # the return's end: short and moving
+    S = settle_hold(robot.q_rest, X0, robot.dynamics)
+    n = S.shape[0]
+    ref = robot.dynamics.simulate(np.repeat(robot.q_rest[None], n + 400, axis=0), DT, X0)  # exact ZOH, sample 0 = X0
+    np.testing.assert_allclose(S, ref[1 : n + 1], atol=1e-12)
+
+    def within(X):  # type: ignore[no-untyped-def]
+        return np.all(np.abs(X[..., 0] - robot.q_rest) <= SETTLE.position, axis=-1) & np.all(np.abs(X[..., 1]) <= SETTLE.velocity, axis=-1)
+
+    assert np.all(within(ref[n - 1 : n + 201]))  # the last two samples and the 0.2 s after them
+    assert not within(ref[n - 2])  # one sample shorter would not be
+    assert 50 < n < 300
+    assert settle_hold(robot.q_rest, np.stack([robot.q_rest, np.zeros(8)], axis=1), robot.dynamics).shape == (0, 8, 2)
+    with pytest.raises(InvalidInputError, match="not within"):
+        settle_hold(robot.q_rest, X0, robot.dynamics, tol=SettleTolerance(max_hold=0.05))
+
+
+def test_preparation_keeps_the_ball_in_the_cup_within_the_limits(robot) -> None:  # type: ignore[no-untyped-def]
+    from studio.cup_hold import CupGrip
+    from studio.planner import _cup_check, _held_quintic, preparation_phase
+    from studio.toss import load_default_toss_model
+
+    u0 = load_default_toss_model("right", robot).primitive.u[0]
+    prep = preparation_phase(robot, u0)
+    assert prep.cup is not None and prep.cup.passed and prep.cup.t_end == pytest.approx(prep.duration)
+    L = robot.limits
+    assert np.all(np.abs(prep.ud) <= L.velocity) and np.all(np.abs(prep.udd) <= L.acceleration)
+    np.testing.assert_allclose(prep.q[-1], u0, atol=1e-6)  # at rest when the toss starts
+    # the shortest on the 1 ms grid (the limits alone allowed 0.331 s, which breaks the cone)
+    assert 0.4 < prep.motion_time < 0.7 and prep.duration == pytest.approx(prep.motion_time + 0.3)
+    grip = CupGrip.of(robot)
+    shorter = _held_quintic(robot, robot.q_flat, u0, prep.motion_time - 0.002, 300, DT)
+    assert not _cup_check(robot, shorter, DT, grip).passed
+    looser = preparation_phase(robot, u0, grip=CupGrip(grip.geometric, safety_factor=1.0))
+    assert looser.cup is not None and looser.cup.passed and looser.motion_time < prep.motion_time
