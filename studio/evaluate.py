@@ -493,14 +493,38 @@ def ball_metrics(traj: Trajectory | Any, *, strike_t: float | None) -> BallMetri
     )
 
 
+CONTACT_STANDOFF = C.BALL_RADIUS + C.RACKET_HALF_THICKNESS
+"""Distance [m] from the racket's mid-plane to the centre of a ball touching its rubber:
+ball radius 20 mm + half the racket thickness 7 mm (:mod:`studio.constants`)."""
+
+
 def strike_target(serve: HandServe, toss: TossModel) -> RacketTarget:
-    """Racket target at tau: p_tau = p_bar(tau) + delta_p, n_tau, v_tau (world frame)."""
+    """Racket target at tau such that the ball on the mean toss path touches the rubber at tau.
+
+    The serve's racket velocity v_tau and normal n_tau are those at that contact. The
+    contact point on the face is the foot of the ball centre ``p_bar(tau)`` on the face
+    plane, moved by the in-plane part of the offset delta_p; so the racket centre is::
+
+        p_tau = p_bar(tau) + (delta_p - (delta_p . n) n) - s (r + h) n
+
+    with ``r + h`` = :data:`CONTACT_STANDOFF` and ``s = +1`` when the ball meets the face
+    n points out of (face A: the ball approaches against n relative to the racket), else -1.
+    The normal part of delta_p would move the contact off tau and is not used (serve files
+    from before this rule put the racket centre on ``p_bar(tau) + delta_p``: they load
+    unchanged and are read by this rule, the ball now meeting the rubber at tau instead of
+    3-14 ms earlier).
+    """
     p = serve.params
     if not (toss.t[0] <= p.tau <= toss.t[-1]):
         raise InvalidInputError(f"tau = {p.tau:.3f} s is outside the toss model's time range [{toss.t[0]:.2f}, {toss.t[-1]:.2f}] s")
-    mean = toss.mean_state(p.tau).p
-    pos = np.asarray(mean) + np.asarray(p.offset)
-    return RacketTarget(tuple(_vec(pos)), tuple(_vec(p.normal)), tuple(_vec(p.velocity)))  # type: ignore[arg-type]
+    ball = toss.mean_state(p.tau)
+    n = np.asarray(p.normal, dtype=float)
+    n = n / np.linalg.norm(n)
+    offset = np.asarray(p.offset, dtype=float)
+    offset = offset - float(offset @ n) * n
+    side = 1.0 if float((np.asarray(ball.v) - np.asarray(p.velocity)) @ n) <= 0.0 else -1.0
+    pos = np.asarray(ball.p) + offset - side * CONTACT_STANDOFF * n
+    return RacketTarget(tuple(_vec(pos)), tuple(_vec(n)), tuple(_vec(p.velocity)))  # type: ignore[arg-type]
 
 
 def _failure(motion: ServeMotion, toss: TossModel, timings: dict[str, float]) -> Evaluation:
@@ -623,10 +647,10 @@ def evaluate_motion(
     p = serve.params
     t_full, q_full = motion.t, motion.q
     t_start = toss.t_lift + 0.005
-    # A recorded toss: the state at t_start whose flight passes through that toss's own
-    # recorded state at tau (TossModel.recorded_start_state), not its noisy state at t_start.
+    # The state at t_start whose flight passes through the mean path (or a recorded toss's
+    # own recorded state) at tau, so that the ball touches the racket at tau (strike_target).
     if toss_sample is None:
-        ball0 = toss.mean_state(t_start)
+        ball0 = toss.mean_start_state(t_start, p.tau, flight=context.flight)
     else:
         ball0 = toss.recorded_start_state(toss_sample, t_start, p.tau, flight=context.flight)
     t_end = p.tau + FLIGHT_AFTER_CONTACT

@@ -2093,6 +2093,27 @@ class TossModel:
         X = self._recorded_start_states(t0, t1, flight)
         return BallState(p=X[k, :3], v=X[k, 3:], w=np.zeros(3))
 
+    def mean_start_state(self, t_start: float, t_target: float, *, flight: object | None = None) -> BallState:
+        """Ball state at ``t_start`` [s] from which a spinless flight in still air under
+        ``flight`` (default :data:`studio.ball.DEFAULT_FLIGHT`) passes through the mean
+        path's state at ``t_target`` [s] (the strike time tau): the mean-toss evaluation
+        flies from it, so the ball is exactly where the strike target assumes it at tau
+        (:func:`studio.evaluate.strike_target`). ``t_target`` before
+        :attr:`free_flight_start` (or not after ``t_start``): :meth:`mean_state` at ``t_start``.
+
+        Raises:
+            InvalidInputError: times outside the model's interval.
+        """
+        from studio import ball
+
+        t0, t1 = self._check_t(t_start), self._check_t(t_target)
+        if t1 <= t0 or t1 < self.free_flight_start:
+            return self.mean_state(t0)
+        target = self.mean_state(t1)
+        fl = ball.DEFAULT_FLIGHT if flight is None else flight
+        p0, v0 = _spinless_flight(target.p[None, :], target.v[None, :], t1, t0, fl)
+        return ball.BallState(p=p0[0], v=v0[0], w=np.zeros(3))
+
     def _recorded_start_states(self, t_start: float, t_target: float, flight: object | None) -> FloatArray:
         """All tosses' :meth:`recorded_start_state` as (K, 6) ``[p, v]`` [m, m/s], cached
         per (t_start, t_target, flight): a robust evaluation asks for each toss in turn."""

@@ -250,3 +250,26 @@ def test_robust_evaluation_flies_each_toss_through_its_own_recording(context: Ev
         assert hits and abs(hits[0].t - tau) < 0.01
         p_hit_rec = p_rec + toss.recorded_state_at(tau, k).v * (hits[0].t - tau)
         assert np.linalg.norm(hits[0].p - p_hit_rec) < 3e-3
+
+
+@pytest.mark.parametrize("path", EXAMPLES, ids=lambda p: p.stem)
+def test_ball_meets_the_rubber_at_tau_with_the_racket_state_the_file_asks(context: EvaluationContext, path: Path) -> None:
+    """tau is the contact time: the simulated ball's racket event (the ball simulator's own
+    root finding) against the racket pose from pinocchio FK of the planned joints."""
+    serve = load_serve(path)
+    ev = evaluate_serve(serve, context, task=serve.task)
+    assert ev.ball is not None and ev.motion.t is not None and ev.motion.q is not None
+    hit = next(e for e in ev.ball.events if e.kind == "racket")
+    p = serve.params
+    assert abs(hit.t - p.tau) < 1e-3
+    t, q = np.asarray(ev.motion.t), np.asarray(ev.motion.q)
+    i = int(np.searchsorted(t, hit.t))
+    before, after = context.robot.fk(q[i - 1]), context.robot.fk(q[i])
+    v = (after.position - before.position) / (t[i] - t[i - 1])
+    assert np.linalg.norm(v - np.asarray(p.velocity)) < 0.02
+    n_file = np.asarray(p.normal) / np.linalg.norm(p.normal)
+    assert math.degrees(math.acos(min(1.0, float(after.normal @ n_file)))) < 0.5
+    # the ball centre is one standoff (radius + half thickness) from the face plane at contact
+    centre = before.position + v * (hit.t - t[i - 1])
+    gap = abs(float((hit.p - centre) @ after.normal))
+    assert gap == pytest.approx(0.027, abs=0.002)
