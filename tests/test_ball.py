@@ -49,9 +49,13 @@ def test_magnus_direction_and_saturation() -> None:
     a_side = fm.acceleration(np.zeros(3), v, [0.0, 0.0, 300.0])
     assert a_top[2] < a_none[2] - 1.0  # topspin pushes down
     assert a_side[1] > 1.0  # w_z > 0 pushes to +Y (left of the flight direction)
-    # saturating: S = 0.25 -> 1/6, S = 4 -> 4/9, far below the linear law's 4
-    assert fm.lift_coefficient(0.25) == pytest.approx(1 / 6)
-    assert fm.lift_coefficient(4.0) == pytest.approx(4 / 9)
+    # the saturating law C_L = S / (lift_a + lift_b S), checked on round parameters:
+    # S = 0.25 -> 1/6, S = 4 -> 4/9, far below the linear law's 4
+    assert B.FlightModel(lift_a=1.0, lift_b=2.0).lift_coefficient(0.25) == pytest.approx(1 / 6)
+    assert B.FlightModel(lift_a=1.0, lift_b=2.0).lift_coefficient(4.0) == pytest.approx(4 / 9)
+    # the default (fitted on match flights) saturates at 1 / lift_b ~ 0.30
+    assert fm.lift_coefficient(4.0) == pytest.approx(4.0 / (fm.lift_a + 4.0 * fm.lift_b))
+    assert 0.2 < fm.lift_coefficient(0.25) < fm.lift_coefficient(4.0) < 1.0 / fm.lift_b <= 0.31
     # cork spin (along v) makes no lift
     a_cork = fm.acceleration(np.zeros(3), v, [300.0, 0.0, 0.0])
     np.testing.assert_allclose(a_cork, a_none, atol=1e-12)
