@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from collections.abc import Callable, Sequence
 
 Handler = Callable[[argparse.Namespace], int]
@@ -268,9 +269,27 @@ def _cmd_toss(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from studio.ball_calibration import main as calibration_main
+    from studio import ball_calibration as BC
+    from studio import flight_calibration as FC
+    from studio.errors import DataFileError, InvalidInputError
 
-    return calibration_main([] if args.folds is None else ["--folds", str(args.folds)])
+    folds = 5 if args.folds is None else args.folds
+    contacts = None if args.no_serve_contacts else (args.serve_contacts or BC.SERVE_CONTACTS_CSV)
+    try:
+        racket = BC.calibrate(folds=folds, repeats=args.repeats, serve_contacts=contacts)
+        print("Racket impact model (velocity / spin error norms, RMS; CV = cross-validated per data set):")
+        print(BC.format_table(racket))
+        print()
+        flight = FC.calibrate_flight(args.match, folds=folds, player_cv=not args.no_cv, rally_cv=not args.no_cv)
+        print(FC.format_flight_table(flight))
+    except (DataFileError, InvalidInputError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.write:
+        BC.write_models_json(racket)
+        FC.write_flight_json(flight)
+        print(f"\nwrote {BC.RACKET_MODELS_JSON} and {FC.FLIGHT_MODEL_JSON} (the defaults in studio/ball.py follow the flight record by hand)")
+    return 0
 
 
 def _cmd_library(args: argparse.Namespace) -> int:
@@ -468,8 +487,19 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--csv", default=None, help="recordings CSV (toss_id,t,x,y,z); default: the shipped recordings")
     handlers["toss"] = _cmd_toss
 
-    p = sub.add_parser("calibrate", help="fit the racket impact model on the bounce data and print cross-validated errors")
-    p.add_argument("--folds", type=int, default=None)
+    p = sub.add_parser(
+        "calibrate",
+        help="refit the racket, flight and table models on real data and print one table: before, after (cross-validated), noise",
+    )
+    p.add_argument("--folds", type=int, default=None, help="cross-validation folds (default 5)")
+    p.add_argument("--repeats", type=int, default=1, help="random fold splits pooled for the racket CV (default 1)")
+    p.add_argument("--serve-contacts", type=Path, default=None,
+                   help="robot serve contacts CSV in the Ace format (default: the shipped studio/data/robot_serve_contacts)")
+    p.add_argument("--no-serve-contacts", action="store_true", help="fit the racket on the racket-at-rest bounces only")
+    p.add_argument("--match", type=Path, default=None,
+                   help="match events CSV in the Ace public format (default ../shared/data/ace_match/match_data_dev.csv)")
+    p.add_argument("--no-cv", action="store_true", help="skip the flight model's cross-validations (~2 min)")
+    p.add_argument("--write", action="store_true", help="write the fitted parameter records (racket_models.json, flight_model.json)")
     handlers["calibrate"] = _cmd_calibrate
 
     p = sub.add_parser("library", help="serve library: list, show, validate, select the next serve, record points, statistics, prune")

@@ -1006,6 +1006,10 @@ class FlightCalibration:
     """Reference flight model with the lag correction only (attribution)."""
     new_model_without_lag: ReplaySummary
     """Fitted flight model on the raw data (attribution)."""
+    shipped: ReplaySummary
+    """The shipped defaults (:class:`FlightModel`, :class:`TableBounceModel`,
+    :data:`VELOCITY_LAG`), not refitted: on a file they were not fitted on (another
+    player's matches, your own recordings) this is their held-out validation."""
     player_cv: tuple[FoldResult, ...]
     """Leave-one-player-out folds."""
     player_cv_pooled: ReplaySummary | None
@@ -1086,6 +1090,7 @@ def calibrate_flight(
         before=summarize(flights, rep0), after=summarize(flights, rep1),
         old_model_with_lag=summarize(flights, replay(flights, PREVIOUS_FLIGHT, velocity_lag=fit.velocity_lag)),
         new_model_without_lag=summarize(flights, replay(flights, fit.model, velocity_lag=0.0)),
+        shipped=summarize(flights, replay(flights, FlightModel(), TableBounceModel(), velocity_lag=VELOCITY_LAG)),
         player_cv=pcv, player_cv_pooled=pcv_pool, rally_cv=rcv, rally_cv_pooled=rcv_pool,
         bounce_before=bounce_check(flights, rep0, PREVIOUS_TABLE), bounce_after=bounce_check(flights, rep1, table),
         drop_test_before=drop0, drop_test_after=drop1, noise=noise_level(flights, fit.model, fit.velocity_lag),
@@ -1200,6 +1205,9 @@ def calibration_rows(res: FlightCalibration) -> tuple[CalibrationRow, ...]:
         CalibrationRow("flight", "rally (new model, no lag)", "landing error median [mm]", 1e3 * res.before.rally.median, 1e3 * res.new_model_without_lag.rally.median, math.nan),
         CalibrationRow("flight", "landed (old model + lag)", "predicted into the net [count]", res.before.false_net, res.old_model_with_lag.false_net, math.nan),
         CalibrationRow("flight", "landed (new model, no lag)", "predicted into the net [count]", res.before.false_net, res.new_model_without_lag.false_net, math.nan),
+        CalibrationRow("flight", "serve (shipped model, not refitted)", "landing error median [mm]", 1e3 * res.before.serve.median, 1e3 * res.shipped.serve.median, math.nan),
+        CalibrationRow("flight", "rally (shipped model, not refitted)", "landing error median [mm]", 1e3 * res.before.rally.median, 1e3 * res.shipped.rally.median, math.nan),
+        CalibrationRow("flight", "landed (shipped model, not refitted)", "predicted into the net [count]", res.before.false_net, res.shipped.false_net, math.nan),
     ]  # fmt: skip
     rows += _cv_rows(res.player_cv, res.player_cv_pooled, "player", res.before)
     rows += _cv_rows(res.rally_cv, res.rally_cv_pooled, "rally group", res.before)

@@ -1721,8 +1721,9 @@ def settle_hold(u_end: npt.ArrayLike, X_end: npt.ArrayLike, dynamics: JointDynam
     """Predicted states (n, 8, 2) at t_end + dt, ..., t_end + n dt of the joints holding the
     command ``u_end`` (8,) that is sent at t_end, from their state ``X_end`` (8, 2) at t_end.
 
-    n is the smallest count such that the last two samples (so a finite difference over the
-    last interval too) and every sample over ``tol.horizon`` after them are within ``tol``
+    n is the smallest count such that the last two samples (their velocities, exact and as
+    finite differences from the sample before) and every sample over ``tol.horizon`` after
+    them are within ``tol``
     (0 if the motion already ends that way).
 
     Raises:
@@ -1737,6 +1738,7 @@ def settle_hold(u_end: npt.ArrayLike, X_end: npt.ArrayLike, dynamics: JointDynam
     S = np.einsum("jnab,nb->jna", phi, np.stack([X0[:, 0] - u1, X0[:, 1]], axis=1))
     S[:, :, 0] += u1
     ok = np.all((np.abs(S[:, :, 0] - u1) <= tol.position) & (np.abs(S[:, :, 1]) <= tol.velocity), axis=1)
+    ok[1:] &= np.all(np.abs(np.diff(S[:, :, 0], axis=0)) <= tol.velocity * dt, axis=1)  # as a controller sees it
     bad = np.flatnonzero(~ok[: n_max + n_look])
     if bad.size == 0:
         return S[1:1]

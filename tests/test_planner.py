@@ -227,11 +227,13 @@ def test_settle_hold_is_the_shortest_hold_to_rest(robot) -> None:  # type: ignor
     ref = robot.dynamics.simulate(np.repeat(robot.q_rest[None], n + 400, axis=0), DT, X0)  # exact ZOH, sample 0 = X0
     np.testing.assert_allclose(S, ref[1 : n + 1], atol=1e-12)
 
-    def within(X):  # type: ignore[no-untyped-def]
-        return np.all(np.abs(X[..., 0] - robot.q_rest) <= SETTLE.position, axis=-1) & np.all(np.abs(X[..., 1]) <= SETTLE.velocity, axis=-1)
+    def within(k):  # type: ignore[no-untyped-def]
+        X, fd = ref[k], np.abs(ref[k, ..., 0] - ref[k - 1, ..., 0]) / DT  # exact and finite-difference speed
+        return bool(np.all(np.abs(X[..., 0] - robot.q_rest) <= SETTLE.position) and np.all(np.abs(X[..., 1]) <= SETTLE.velocity)
+                    and np.all(fd <= SETTLE.velocity))
 
-    assert np.all(within(ref[n - 1 : n + 201]))  # the last two samples and the 0.2 s after them
-    assert not within(ref[n - 2])  # one sample shorter would not be
+    assert all(within(k) for k in range(n - 1, n + 201))  # the last two samples and the 0.2 s after them
+    assert not within(n - 2)  # one sample shorter would not be
     assert 50 < n < 300
     assert settle_hold(robot.q_rest, np.stack([robot.q_rest, np.zeros(8)], axis=1), robot.dynamics).shape == (0, 8, 2)
     with pytest.raises(InvalidInputError, match="not within"):

@@ -190,7 +190,7 @@ def test_fast_ball_on_still_blade(robot, scene) -> None:
     ev = B.simulate(s0, 0.1, racket=still).events_of("racket")
     assert len(ev) == 1 and c.t == pytest.approx(ev[0].t, abs=1e-6)
     np.testing.assert_allclose(c.point, c.p - C.BALL_RADIUS * n, atol=1e-9)
-    assert float(np.linalg.norm(c.point - C.RACKET_HALF_THICKNESS * n - hit)) < 0.01
+    assert float(np.linalg.norm(c.point - C.RACKET_HALF_THICKNESS * n - hit)) < 0.015  # drag bends the 0.6 m path
     np.testing.assert_allclose(c.surface_velocity, 0.0, atol=1e-12)
     v_exp, w_exp = B.RacketModel.default().bounce_moving(c.v_before, c.w_before, R, np.zeros(3), 1.0)
     np.testing.assert_allclose(c.v_after, v_exp, atol=1e-6)
