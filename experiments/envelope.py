@@ -1,0 +1,92 @@
+"""Serve capability envelope (the paper's Fig. 3b): net-crossing speed and spin of legal serves.
+
+Reads the evaluation logs of optimization runs (``<run>/evaluations.jsonl`` and
+``run.json`` of ``serve-studio optimize`` / ``train``), re-evaluates every distinct serve
+logged as legal on the mean toss with the current physics, and prints the legal serves'
+envelope: the largest topspin, backspin and sidespin at the net crossing, the fastest and
+the spinniest serve, each with its speed, spin and run. ``--json FILE`` also writes the
+points (speed, topspin, sidespin, |w| at the net per legal serve) for plots.
+
+    ./dev run python experiments/envelope.py RUN_DIR [RUN_DIR ...] [--max 400] [--json FILE]
+
+A run folder may also be a folder of run folders (``experiments/table2/backspin``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from studio.evaluate import EvaluationContext, evaluate_serve
+
+from studio.serve import GENE_NAMES, HandServe, LimitScale, ServeParams
+
+
+def run_folders(paths: list[Path]) -> list[Path]:
+    """Every folder holding an ``evaluations.jsonl`` and ``run.json`` under ``paths``."""
+    found = [p for path in paths for p in [path, *sorted(path.glob("*"))] if (p / "evaluations.jsonl").is_file()]
+    return [p for p in found if (p / "run.json").is_file()]
+
+
+def legal_candidates(run: Path) -> list[tuple[str, ServeParams, LimitScale]]:
+    """(side, parameters, limit scale) of the serves a run logged as legal, without repeats."""
+    meta = json.loads((run / "run.json").read_text(encoding="utf-8"))
+    scale = LimitScale(**meta.get("limit_scale", {})) if isinstance(meta.get("limit_scale"), dict) else LimitScale()
+    seen: set[tuple[float, ...]] = set()
+    out = []
+    for line in (run / "evaluations.jsonl").read_text(encoding="utf-8").splitlines():
+        rec = json.loads(line) if line.strip() else {}
+        if not rec.get("legal"):
+            continue
+        x = tuple(round(float(rec["params"][g]), 9) for g in GENE_NAMES)
+        if x not in seen:
+            seen.add(x)
+            out.append((str(meta["side"]), ServeParams.from_vector(x), scale))
+    return out
+
+
+def net_point(ctx: EvaluationContext, side: str, params: ServeParams, scale: LimitScale) -> dict[str, float] | None:
+    """Net-crossing speed [m/s] and spin [rad/s] of a serve legal on the mean toss, else None."""
+    ev = evaluate_serve(HandServe(name="c", side=side, params=params, limit_scale=scale), ctx)  # type: ignore[arg-type]
+    net = ev.metrics.net if ev.legal and ev.metrics is not None else None
+    if net is None:
+        return None
+    w = np.asarray(net["w"], dtype=float)
+    return {"speed": float(net["speed"]), "topspin": float(net["topspin"]), "sidespin": float(net["sidespin"]),
+            "spin": float(np.linalg.norm(w))}  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--max", type=int, default=400, help="at most this many serves per run (the last logged)")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    ctx = EvaluationContext.default()
+    points: list[dict[str, object]] = []
+    for run in run_folders(args.runs):
+        for side, params, scale in legal_candidates(run)[-args.max :]:
+            pt = net_point(ctx, side, params, scale)
+            if pt is not None:
+                points.append({**pt, "run": str(run), "side": side})
+    if not points:
+        print("no legal serve in these runs")
+        return
+    print(f"{len(points)} serves legal on the mean toss (current physics), from {len(run_folders(args.runs))} runs")
+    rows = [("largest topspin", max(points, key=lambda p: p["topspin"])),  # type: ignore[arg-type,return-value]
+            ("largest backspin", min(points, key=lambda p: p["topspin"])),  # type: ignore[arg-type,return-value]
+            ("largest sidespin", max(points, key=lambda p: abs(p["sidespin"]))),  # type: ignore[arg-type,return-value]
+            ("spinniest", max(points, key=lambda p: p["spin"])),  # type: ignore[arg-type,return-value]
+            ("fastest", max(points, key=lambda p: p["speed"]))]  # type: ignore[arg-type,return-value]  # fmt: skip
+    print(f"{'':18} {'speed m/s':>9} {'top/back':>9} {'side':>7} {'|w|':>6}  run")
+    for label, p in rows:
+        print(f"{label:18} {p['speed']:9.2f} {p['topspin']:9.0f} {p['sidespin']:7.0f} {p['spin']:6.0f}  {p['run']}")
+    if args.json is not None:
+        args.json.write_text(json.dumps(points, indent=1) + "\n", encoding="utf-8")
+
+
+if __name__ == "__main__":
+    main()
