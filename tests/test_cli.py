@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -120,7 +121,15 @@ def test_robustify_reports_and_writes_only_an_improvement(capsys: pytest.Capture
     src.write_text((EXAMPLES / "sidespin_left.json").read_text())
     code = main(["robustify", str(src), "--evaluations", "12", "--run-dir", str(tmp_path / "run")])
     out = capsys.readouterr().out
-    assert "Start: legal on 12/20 recorded tosses, net spin" in out and "keeping topspin >= 135 and sidespin (-) >= 238 rad/s at the net" in out
+    start = re.search(r"Start: legal on (\d+)/20 recorded tosses, net spin top/back ([-+]\d+), side ([-+]\d+) rad/s", out)
+    keep = re.search(r"keeping topspin >= (\d+) and sidespin \(-\) >= (\d+) rad/s at the net", out)
+    assert start and keep, out
+    # the start's count and spins agree with `evaluate --tosses 20` (another code path)
+    assert main(["evaluate", str(src), "--tosses", "20", "--json"]) == 0
+    ev = json.loads(capsys.readouterr().out)
+    assert int(start.group(1)) == round(20 * ev["legal_fraction"])
+    top, side = int(start.group(2)), int(start.group(3))
+    assert abs(int(keep.group(1)) - 0.9 * abs(top)) <= 1 and abs(int(keep.group(2)) - 0.9 * abs(side)) <= 1
     written = tmp_path / "serve_robust.json"
     assert (code == 0) == written.exists()  # written only when a candidate beat the start
     assert len((tmp_path / "run" / "robustify.jsonl").read_text().splitlines()) == 12
