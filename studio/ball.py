@@ -705,7 +705,7 @@ class RacketModel:
         hit = vn > 0.0
         jt, e_b = self._tangential_impulse(v, w, vn, lever)
         jnorm = np.linalg.norm(jt, axis=1)
-        e = np.clip(e_b - self.restitution_slip * jnorm / (m * np.where(hit, vn, 1.0)), 0.0, 1.0)
+        e = np.clip(e_b - self.restitution_slip * (jnorm / m) / np.where(hit, vn, 1.0), 0.0, 1.0)
         v_out, w_out = _tangential_impulse_update(v, w, jt, lever, m, inertia)
         lost = 0.5 * (np.sum(v[:, :2] ** 2, axis=1) - np.sum(v_out[:, :2] ** 2, axis=1))
         lost += 0.5 * inertia / m * (np.sum(w[:, :2] ** 2, axis=1) - np.sum(w_out[:, :2] ** 2, axis=1))
@@ -747,8 +747,8 @@ class RacketModel:
     ) -> tuple[FloatArray, FloatArray]:
         """Impact with a moving racket, world frame.
 
-        The ball velocity relative to the racket surface at the contact point and its
-        spin relative to the racket's angular velocity are expressed in the face frame
+        The ball velocity relative to the racket-fixed point at its centre and its spin
+        relative to the racket's angular velocity are expressed in the face frame
         (z = outward normal of the struck face: ``face_sign * R[:, 2]``; for face B the
         frame is the racket frame turned by pi about its x axis), bounced with
         :meth:`bounce`, and mapped back with the racket's velocity and angular velocity
@@ -758,8 +758,10 @@ class RacketModel:
             v_ball: ball velocity (3,) [m/s], world frame.
             w_ball: ball spin (3,) [rad/s], world frame.
             racket_R: racket orientation (3, 3): columns = racket axes in the world.
-            v_contact: velocity of the racket surface at the contact point (3,) [m/s],
-                ``v_racket + omega_racket x (c - p_racket)``.
+            v_contact: velocity [m/s] (3,) of the racket-fixed point at the ball's centre,
+                ``v_racket + omega x (p_ball - p_racket)``: with the spin taken relative to
+                ``omega`` the contact point's slip is then exact (the rubber point under the
+                ball moves at ``v_contact - omega x (r n)``).
             face_sign: +1 for face A (racket +z side), -1 for face B.
             omega: racket angular velocity (3,) [rad/s], world frame (None: at rest).
 
@@ -784,7 +786,7 @@ class RacketModel:
 
 
 def _load_racket_models(path: Path) -> dict[str, RacketModel]:
-    """Parse the racket-model JSON (schema 1) into models; DataFileError naming the field."""
+    """Parse the racket-model JSON (schema 2) into models; DataFileError naming the field."""
     return dict(_load_racket_models_cached(str(path)))
 
 
@@ -812,7 +814,9 @@ def _load_racket_models_cached(path: str) -> tuple[tuple[str, RacketModel], ...]
         unknown = set(params) - allowed
         if unknown:
             raise DataFileError(path, f"models.{name}.parameters: unknown fields {sorted(unknown)}")
-        cv = entry.get("cross_validation", {}).get("racket_bounces", {})
+        cv = entry.get("cross_validation")
+        cv = cv.get("racket_bounces") if isinstance(cv, dict) else None
+        cv = cv if isinstance(cv, dict) else {}
         try:
             model = RacketModel(
                 **params,
@@ -1504,7 +1508,9 @@ def simulate(
             part = "face_a" if s > 0.0 else "face_b"
             normal = s * rs.R[:, 2]
             contact = p_e - r * normal
-            v_a, w_a = racket_model.bounce_moving(v_b, w_b, rs.R, rs.point_velocity(contact), s, omega=rs.omega)
+            # racket velocity at the ball centre with the spin relative to omega: the slip at the
+            # contact point is then exact (the serve contacts' convention, RacketModel.bounce_moving)
+            v_a, w_a = racket_model.bounce_moving(v_b, w_b, rs.R, rs.point_velocity(p_e), s, omega=rs.omega)
         events.append(
             Event(kind=kind, t=te, p=p_e, v_before=v_b, v_after=v_a, w_before=w_b, w_after=w_a,
                   part=part, normal=normal, side=side)

@@ -192,8 +192,11 @@ _CONTACT_GROUPS = {
     "v_racket": "Global_Racket_Velocity_",
     "w_racket": "Global_Racket_Spin_",
 }
-CONTACT_COLUMNS = tuple(f"{p}{a}" for p in _CONTACT_GROUPS.values() for a in "XYZ") + tuple(
-    f"Orientation_{a}" for a in "XYZW"
+_OFFSET_COLUMNS = ("Global_dx_pre", "Global_dy_pre", "Global_dz_pre")
+CONTACT_COLUMNS = (
+    tuple(f"{p}{a}" for p in _CONTACT_GROUPS.values() for a in "XYZ")
+    + tuple(f"Orientation_{a}" for a in "XYZW")
+    + _OFFSET_COLUMNS
 )
 """Columns a serve-contact CSV must have (the Ace robot's format; extra columns are ignored)."""
 
@@ -208,7 +211,8 @@ def _read_numeric_csv(path: Path, columns: Sequence[str]) -> tuple[FloatArray, l
                 raise DataFileError(path, f"line 1: missing column(s) {missing}")
             values: list[list[float]] = []
             raw: list[dict[str, str]] = []
-            for line_no, row in enumerate(reader, start=2):
+            for row in reader:
+                line_no = reader.line_num
                 rec: list[float] = []
                 for name in columns:
                     cell = (row.get(name) or "").strip()
@@ -244,8 +248,10 @@ def _face_frames(normals: FloatArray) -> FloatArray:
 def load_serve_contacts_csv(path: str | os.PathLike[str] = SERVE_CONTACTS_CSV) -> BounceRows:
     """Read robot serve contacts (moving racket) as rows relative to the racket.
 
-    Each row's ball velocity relative to the racket and spin relative to the racket's
-    angular velocity are written in a face frame whose z axis is the face normal (the
+    Each row's ball velocity relative to the racket-fixed point at the ball's centre
+    (racket velocity plus ``omega x d``, ``d`` = ``Global_d{x,y,z}_pre``, the data's own
+    racket-frame columns ``Before_*``/``After_*`` use the same) and spin relative to the
+    racket's angular velocity are written in a face frame whose z axis is the face normal (the
     racket frame's x axis, ``Orientation_*`` quaternion, scalar last) turned towards
     the incoming ball; the outgoing state likewise. An isotropic model's error norms are
     the same in this frame as in the world frame (the scoring rule of the data's README).
@@ -263,7 +269,9 @@ def load_serve_contacts_csv(path: str | os.PathLike[str] = SERVE_CONTACTS_CSV) -
         bad = int(np.nonzero((qn < 0.5) | (qn > 1.5))[0][0])
         raise DataFileError(path, f"line {bad + 2}, columns 'Orientation_*': not a unit quaternion (norm {qn[bad]:.3g})")
     normal = Rotation.from_quat(quat / qn[:, None]).as_matrix()[:, :, 0]
-    rel = vec["v_pre"] - vec["v_racket"]
+    # the racket-fixed point at the ball centre (offset Global_d*_pre from the racket centre)
+    v_point = vec["v_racket"] + np.cross(vec["w_racket"], arr[:, 22:25])
+    rel = vec["v_pre"] - v_point
     normal *= -np.sign(np.einsum("ij,ij->i", rel, normal) + 1e-300)[:, None]
     frames = _face_frames(normal)
 
@@ -273,7 +281,7 @@ def load_serve_contacts_csv(path: str | os.PathLike[str] = SERVE_CONTACTS_CSV) -
     rows = BounceRows(
         v_in=local(rel),
         w_in=local(vec["w_pre"] - vec["w_racket"]),
-        v_out=local(vec["v_post"] - vec["v_racket"]),
+        v_out=local(vec["v_post"] - v_point),
         w_out=local(vec["w_post"] - vec["w_racket"]),
         racket_angle=np.full(len(arr), np.nan),
         traj_dir=tuple(f"line {i + 2}: {r.get('date', '')}{r.get('shot_ID', '')}" for i, r in enumerate(raw)),
@@ -483,17 +491,18 @@ def cross_validate(
 
 
 def measurement_noise(rows: BounceRows, model: RacketModel) -> tuple[float, float] | None:
-    """Noise floor of a data set with repeated launcher settings: (velocity, spin) RMS [m/s, rad/s].
+    """Noise floor of a data set with repeated settings: (velocity, spin) RMS [m/s, rad/s].
 
-    Rows of one ``traj_dir`` (the same launcher setting) are paired; the difference of two
+    Rows of one launcher setting and racket angle (``traj_dir``, ``racket_angle``) are paired; the difference of two
     outcomes minus the model's predicted difference (which accounts for the small change of
     the incoming state) is twice the per-row noise variance: ``sqrt(mean |d|^2 / 2)``. It is
-    what no smooth map of the measured inputs can explain. None when no setting repeats
-    (the serve contacts: every row is its own shot).
+    what no smooth map of the measured inputs can explain. None when no setting repeats:
+    the serve contacts (every row is its own shot) and the shipped racket bounces (each
+    launcher setting appears at one racket angle only).
     """
-    groups: dict[str, list[int]] = {}
+    groups: dict[tuple[str, float], list[int]] = {}
     for i, key in enumerate(rows.traj_dir):
-        groups.setdefault(key, []).append(i)
+        groups.setdefault((key, float(rows.racket_angle[i])), []).append(i)
     pairs = np.array([(g[a], g[b]) for g in groups.values() for a in range(len(g)) for b in range(a + 1, len(g))])
     if len(pairs) == 0:
         return None

@@ -1069,7 +1069,8 @@ def _impact(
                 part = "face_a" if s > 0.0 else "face_b"
                 if racket_model is None:
                     racket_model = RacketModel.default()
-                v_a, w_a = racket_model.bounce_moving(v_b, w_b, R, v_s, s, omega=w_s)
+                v_c, _ = track.point_velocity(tc, body, p)  # racket point at the ball centre
+                v_a, w_a = racket_model.bounce_moving(v_b, w_b, R, v_c, s, omega=w_s)
             else:
                 part = "rim"
     for a in (p, point, normal, v_b, v_a, w_b, w_a, v_s):

@@ -199,7 +199,7 @@ def test_preparation_from_a_pose_tilted_beyond_the_cone_is_refused(robot: Robot)
 
 
 def test_every_export_records_a_passed_cup_check(exported: list[tuple[str, dict, dict]]) -> None:
-    assert len(exported) == len(EXAMPLES) == 6
+    assert len(exported) == len(EXAMPLES) >= 6
     for name, entry, arrays in exported:
         cup = entry["cup_hold"]
         assert cup["passed"] and cup["worst_ratio"] <= cup["limit"] < 0.61, name
