@@ -110,6 +110,18 @@ class BounceRows:
         )
 
 
+def _finite_cell(path: Path, line_no: int, name: str, cell: str) -> float:
+    """The finite number in a CSV cell, or DataFileError naming file, line and column."""
+    cell = cell.strip()
+    try:
+        val = float(cell)
+    except ValueError:
+        raise DataFileError(path, f"line {line_no}, column {name!r}: not a number: {cell!r}") from None
+    if not math.isfinite(val):
+        raise DataFileError(path, f"line {line_no}, column {name!r}: not finite: {cell!r}")
+    return val
+
+
 def load_bounce_csv(path: str | os.PathLike[str]) -> BounceRows:
     """Read a racket-bounce CSV (columns :data:`REQUIRED_COLUMNS`, SI units).
 
@@ -140,14 +152,7 @@ def load_bounce_csv(path: str | os.PathLike[str]) -> BounceRows:
                     raise DataFileError(path, f"line {line_no}: {len(row)} fields, expected {len(header)}")
                 rec: list[float] = []
                 for name in numeric:
-                    cell = row[col[name]].strip()
-                    try:
-                        val = float(cell)
-                    except ValueError:
-                        raise DataFileError(path, f"line {line_no}, column {name!r}: not a number: {cell!r}") from None
-                    if not math.isfinite(val):
-                        raise DataFileError(path, f"line {line_no}, column {name!r}: not finite: {cell!r}")
-                    rec.append(val)
+                    rec.append(_finite_cell(path, line_no, name, row[col[name]]))
                 values.append(rec)
                 dirs.append(row[col["traj_dir"]].strip())
                 vz_in = rec[numeric.index("v_in_z")]
@@ -215,14 +220,7 @@ def _read_numeric_csv(path: Path, columns: Sequence[str]) -> tuple[FloatArray, l
                 line_no = reader.line_num
                 rec: list[float] = []
                 for name in columns:
-                    cell = (row.get(name) or "").strip()
-                    try:
-                        val = float(cell)
-                    except ValueError:
-                        raise DataFileError(path, f"line {line_no}, column {name!r}: not a number: {cell!r}") from None
-                    if not math.isfinite(val):
-                        raise DataFileError(path, f"line {line_no}, column {name!r}: not finite: {cell!r}")
-                    rec.append(val)
+                    rec.append(_finite_cell(path, line_no, name, row.get(name) or ""))
                 values.append(rec)
                 raw.append(row)
     except UnicodeDecodeError as exc:
