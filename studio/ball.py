@@ -579,7 +579,7 @@ class RacketModel:
     compliance are linear in ``v_n`` and bounded by their clips; the friction limit is
     proportional to the normal impulse, so a brushing contact with a small normal speed
     still gives at most ``mu (1 + e_b) v_n`` of tangential velocity change (with the
-    fitted ``mu ~ 3`` about ``7 v_n``): spin keeps growing with the racket's tangential
+    fitted ``mu ~ 3`` about ``6 v_n``): spin keeps growing with the racket's tangential
     speed up to that bound, then saturates. Whether real rubber grips more (adhesion) at
     very low load is not in the data.
     """
