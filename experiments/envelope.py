@@ -5,9 +5,10 @@ Reads the evaluation logs of optimization runs (``<run>/evaluations.jsonl`` and
 logged as legal on the mean toss with the current physics, and prints the legal serves'
 envelope: the largest topspin, backspin and sidespin at the net crossing, the fastest and
 the spinniest serve, each with its speed, spin and run. ``--json FILE`` also writes the
-points (speed, topspin, sidespin, |w| at the net per legal serve) for plots.
+points (speed, topspin, sidespin, |w| at the net per legal serve) for plots, and
+``--serves DIR`` the extreme serves as serve files (``serve-studio evaluate`` reproduces them).
 
-    ./dev run python experiments/envelope.py RUN_DIR [RUN_DIR ...] [--max 400] [--json FILE]
+    .venv/bin/python experiments/envelope.py RUN_DIR [RUN_DIR ...] [--max 400] [--json FILE] [--serves DIR]
 
 A run folder may also be a folder of run folders (``experiments/table2/backspin``).
 """
@@ -22,7 +23,7 @@ import numpy as np
 
 from studio.evaluate import EvaluationContext, evaluate_serve
 
-from studio.serve import GENE_NAMES, HandServe, LimitScale, ServeParams
+from studio.serve import GENE_NAMES, HandServe, LimitScale, ServeParams, save_serve
 
 
 def run_folders(paths: list[Path]) -> list[Path]:
@@ -64,6 +65,7 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--max", type=int, default=400, help="at most this many serves per run (the last logged)")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--serves", type=Path, default=None, help="write the extreme serves as serve files here")
     args = ap.parse_args()
     ctx = EvaluationContext.default()
     points: list[dict[str, object]] = []
@@ -71,7 +73,7 @@ def main() -> None:
         for side, params, scale in legal_candidates(run)[-args.max :]:
             pt = net_point(ctx, side, params, scale)
             if pt is not None:
-                points.append({**pt, "run": str(run), "side": side})
+                points.append({**pt, "run": str(run), "side": side, "serve": (params, scale)})
     if not points:
         print("no legal serve in these runs")
         return
@@ -84,7 +86,15 @@ def main() -> None:
     print(f"{'':18} {'speed m/s':>9} {'top/back':>9} {'side':>7} {'|w|':>6}  run")
     for label, p in rows:
         print(f"{label:18} {p['speed']:9.2f} {p['topspin']:9.0f} {p['sidespin']:7.0f} {p['spin']:6.0f}  {p['run']}")
+        if args.serves is not None:
+            params, scale = p["serve"]  # type: ignore[misc]
+            name = label.replace(" ", "_")
+            note = f"{label} of the legal serves in {p['run']}: {p['speed']:.2f} m/s, top/back {p['topspin']:+.0f}, side {p['sidespin']:+.0f} rad/s at the net"
+            args.serves.mkdir(parents=True, exist_ok=True)
+            save_serve(args.serves / f"{name}.json", HandServe(name=name, side=p["side"], params=params, notes=note, limit_scale=scale))  # type: ignore[arg-type]
     if args.json is not None:
+        for p in points:
+            del p["serve"]
         args.json.write_text(json.dumps(points, indent=1) + "\n", encoding="utf-8")
 
 
