@@ -209,3 +209,16 @@ def test_robust_export_stores_the_mean_toss_evaluation(capsys: pytest.CaptureFix
     text = capsys.readouterr().out
     assert f"checks and metrics of recorded toss {robust['toss_samples'][0] + 1} (the first of 4 drawn" in text
     assert "the mean toss path's evaluation" in text and "the robust result is in its provenance" in text
+
+
+@pytest.mark.parametrize("name, check", [
+    ("largest_backspin", lambda net: net["topspin"] <= -300.0),
+    ("fastest", lambda net: net["speed"] >= 7.0),
+])  # fmt: skip
+def test_envelope_serves_hold_in_the_mujoco_rollout(capsys: pytest.CaptureFixture[str], name: str, check: object) -> None:
+    """The envelope's claims (experiments/envelope/README.md) in the MuJoCo rollout: ball in
+    the cup, released by the predicted motion, racket contact found by MuJoCo's geometry."""
+    path = Path(__file__).resolve().parent.parent / "experiments" / "envelope" / f"{name}.json"
+    assert main(["evaluate", str(path), "--mujoco", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["legal"] and check(out["net"])  # type: ignore[operator]
