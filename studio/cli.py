@@ -105,7 +105,7 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     from studio.evaluate import EvaluationContext, effort_report, evaluate_serve
     from dataclasses import replace
 
-    from studio.errors import InvalidInputError
+    from studio.errors import InvalidInputError, StudioError
     from studio.optimizer import optimize_serve
     from studio.serve import LimitScale, load_serve
 
@@ -145,6 +145,9 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(f"\ninterrupted: every evaluation so far is in {run_dir}; continue with --resume --run-dir {run_dir}")
         return 130
+    except StudioError:  # e.g. a worker process died (optimizer.WorkerDiedError): end the progress line first
+        print(flush=True)
+        raise
     print()
     if result.best is None or result.summary is None:
         print("nothing evaluated")

@@ -30,7 +30,20 @@ entry's ``cup_hold`` records the ball-in-cup check of preparation + toss (times 
 
 Writes are atomic (temporary file, then rename); loads validate the schema and fail with
 a :class:`~studio.errors.DataFileError` naming the file and the field; arrays are read
-with ``allow_pickle=False``.
+with ``allow_pickle=False``. The index must be strict JSON: every number finite (no
+``NaN``/``Infinity``; the one exception is ``cup_hold.worst_ratio`` = ``Infinity`` that
+libraries of a short-lived earlier version wrote), every integer within +-(2**53 - 1),
+every string valid Unicode (no lone surrogates), ``net`` and ``second_bounce`` null or a
+ball state (``p``, ``v``, ``w`` 3 numbers each; ``topspin``, ``sidespin``, ``cork`` numbers).
+
+Writers never rewrite or delete a file they could not read: every write (export, usage
+sync, prune; :mod:`studio.match`) first reads and validates the index, and a corrupt index
+stops it with the DataFileError, the file kept byte for byte. Writers of one library
+exclude each other with :meth:`ServeLibrary.lock` (:mod:`studio.filelock`, ``.lock`` in the
+folder), held across the read-modify-write, so the studio, the CLI and training can write
+to the same library at once without losing an entry. An export writes its NPZ first and
+the index last (an index entry never points at a missing NPZ; an NPZ whose index write
+failed is removed again).
 """
 
 from __future__ import annotations
@@ -38,10 +51,12 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 import os
 import re
 import tempfile
 import uuid
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -51,6 +66,7 @@ import numpy as np
 import numpy.typing as npt
 
 from studio.errors import DataFileError, InvalidInputError
+from studio.filelock import locked
 from studio.paths import robots_dir
 from studio.robot_description import load_spec
 from studio.serve import HandServe, LimitScale, serve_from_json
@@ -62,6 +78,13 @@ INDEX_NAME = "index.json"
 _ID = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
 _ENTRY_KEYS = {"id", "name", "side", "task", "params", "legal", "reward", "arrays", "created"}
 _ARRAYS = ("t", "u", "q", "ball_t", "ball_p")
+_MAX_INT = 2**53 - 1
+"""Largest integer magnitude in an index (exact in every JSON reader)."""
+_LEGACY_INF = ("cup_hold.worst_ratio",)
+"""Fields where ``Infinity`` is accepted (written by an earlier version; now ``null``)."""
+_STATE_VECTORS = ("p", "v", "w")
+_STATE_NUMBERS = ("topspin", "sidespin", "cork")
+_STATE_OPTIONAL = ("speed", "height", "clearance")
 USAGE_KEYS = ("used", "won", "lost", "aces")
 """Usage counters of an entry (``usage`` object): serves executed, points won and lost
 after them, aces (direct serve points)."""
@@ -103,6 +126,65 @@ def _atomic_write(path: Path, data: bytes) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _strict_json(value: Any, where: str, path: Path) -> None:
+    """Raise DataFileError naming ``where`` unless ``value`` is strict JSON: finite numbers,
+    integers within +-:data:`_MAX_INT`, valid Unicode strings and keys (see module doc)."""
+    stack: list[tuple[Any, str]] = [(value, where)]
+    while stack:  # iterative: a deeply nested file cannot exhaust the Python stack
+        v, w = stack.pop()
+        if isinstance(v, dict):
+            for k, x in v.items():
+                _check_text(k, f"{w} (a key)", path)
+                stack.append((x, f"{w}.{k}"))
+        elif isinstance(v, list):
+            stack.extend((x, f"{w}[{i}]") for i, x in enumerate(v))
+        elif isinstance(v, str):
+            _check_text(v, w, path)
+        elif isinstance(v, bool) or v is None:
+            continue
+        elif isinstance(v, int) and abs(v) > _MAX_INT:
+            raise DataFileError(path, f"field '{w}': integer out of range (|n| > 2**53 - 1, {len(str(abs(v)))} digits)")
+        elif isinstance(v, float) and not math.isfinite(v) and not (v > 0 and w.endswith(_LEGACY_INF)):
+            raise DataFileError(path, f"field '{w}': must be a finite number, got {v!r}")
+
+
+def _check_text(text: str, where: str, path: Path) -> None:
+    """DataFileError unless ``text`` is valid Unicode (encodable as UTF-8: no lone surrogate)."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError as err:
+        raise DataFileError(path, f"field '{where}': not valid Unicode (lone surrogate {text[err.start]!r} at position {err.start})") from None
+
+
+def _check_ball_state(state: Any, where: str, path: Path) -> None:
+    """DataFileError unless ``state`` is null or a ball state (``p``, ``v``, ``w``: 3 numbers;
+    ``topspin``, ``sidespin``, ``cork``: numbers; ``speed``, ``height``, ``clearance``:
+    numbers or null when present). Finiteness is :func:`_strict_json`'s."""
+    if state is None:
+        return
+    if not isinstance(state, dict):
+        raise DataFileError(path, f"field '{where}': must be null or a ball state object, got {type(state).__name__}")
+
+    def number(x: Any) -> bool:
+        return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+    for key in _STATE_VECTORS:
+        vec = state.get(key)
+        if not isinstance(vec, list) or len(vec) != 3 or not all(number(x) for x in vec):
+            raise DataFileError(path, f"field '{where}.{key}': must be 3 numbers, got {vec!r}"[:300])
+    for key in _STATE_NUMBERS:
+        if not number(state.get(key)):
+            raise DataFileError(path, f"field '{where}.{key}': must be a number, got {state.get(key)!r}"[:300])
+    for key in _STATE_OPTIONAL:
+        if state.get(key) is not None and not number(state[key]):
+            raise DataFileError(path, f"field '{where}.{key}': must be a number or null, got {state[key]!r}"[:300])
+
+
+def _index_bytes(doc: dict[str, Any]) -> bytes:
+    """The index file's content for ``doc`` (validated before: only the legacy Infinity)."""
+    return (json.dumps(doc, indent=2) + "\n").encode("utf-8")
 
 
 @dataclass(frozen=True)
@@ -177,16 +259,31 @@ class ServeLibrary:
     def index_path(self) -> Path:
         return self.folder / INDEX_NAME
 
+    def lock(self, timeout: float | None = None) -> AbstractContextManager[None]:
+        """Context manager: hold the library's write lock (:func:`studio.filelock.locked` on
+        the folder) across a read-modify-write of ``index.json`` / ``matches.jsonl``.
+        Re-entrant in one thread; :class:`~studio.filelock.LockTimeoutError` after
+        ``timeout`` seconds (default :func:`studio.filelock.default_timeout`)."""
+        return locked(self.folder, timeout=timeout)
+
     def entries(self) -> list[LibraryEntry]:
-        """All entries, validated. An absent library is empty."""
+        """All entries, validated (strict JSON, see the module doc). An absent library is empty."""
         if not self.index_path.exists():
             return []
         try:
-            doc = json.loads(self.index_path.read_text(encoding="utf-8"))
+            doc = json.loads(self.index_path.read_bytes().decode("utf-8"))
         except json.JSONDecodeError as err:
             raise DataFileError(self.index_path, f"not valid JSON (line {err.lineno}, column {err.colno}): {err.msg}") from None
+        except UnicodeDecodeError as err:
+            raise DataFileError(self.index_path, f"not UTF-8 text (byte {err.start}: {err.reason})") from None
+        except RecursionError:
+            raise DataFileError(self.index_path, "not a library index: JSON nested too deeply") from None
+        except ValueError as err:  # e.g. an integer of more than 4300 digits
+            raise DataFileError(self.index_path, f"not a library index: {err}") from None
         except OSError as err:
             raise DataFileError(self.index_path, f"cannot read: {err}") from None
+        if isinstance(doc, dict):
+            _strict_json({k: v for k, v in doc.items() if k != "serves"}, "index", self.index_path)
         if not isinstance(doc, dict) or doc.get("schema") != LIBRARY_SCHEMA:
             raise DataFileError(self.index_path, f"field 'schema': expected {LIBRARY_SCHEMA!r}, got {doc.get('schema') if isinstance(doc, dict) else type(doc).__name__!r}")
         serves = doc.get("serves")
@@ -202,6 +299,7 @@ class ServeLibrary:
             where = f"serves[{i}]"
             if not isinstance(entry, dict):
                 raise DataFileError(self.index_path, f"field '{where}': must be an object")
+            _strict_json(entry, where, self.index_path)
             missing = sorted(_ENTRY_KEYS - set(entry))
             if missing:
                 raise DataFileError(self.index_path, f"field '{where}': missing {missing}")
@@ -229,6 +327,8 @@ class ServeLibrary:
                     n = usage.get(key, 0)
                     if isinstance(n, bool) or not isinstance(n, int) or n < 0:
                         raise DataFileError(self.index_path, f"field '{where}.usage.{key}': must be a non-negative integer, got {n!r}")
+            for key in ("net", "second_bounce"):
+                _check_ball_state(entry.get(key), f"{where}.{key}", self.index_path)
             robot = entry.get("robot")
             if robot is not None and not isinstance(robot, dict):
                 raise DataFileError(self.index_path, f"field '{where}.robot': must be an object")
@@ -243,13 +343,18 @@ class ServeLibrary:
         """Rewrite the index with ``serves`` (entry dicts), validated first, written atomically.
 
         Used to update usage counters and to remove (prune) serves; the arrays files are
-        not touched. Raises DataFileError naming the field if an entry is malformed.
+        not touched. Holds the library lock; the index there now must be readable (a
+        corrupt one is never overwritten: DataFileError, file kept). The caller holds the
+        lock too when ``serves`` derive from a read of the index (read-modify-write).
+        Raises DataFileError naming the field if an entry is malformed.
         """
         doc = {"schema": LIBRARY_SCHEMA, "serves": serves}
         data = json.loads(json.dumps(doc))  # plain JSON values only, validated as they will be read
         out = self._validated(data["serves"])
-        self.folder.mkdir(parents=True, exist_ok=True)
-        _atomic_write(self.index_path, (json.dumps(data, indent=2) + "\n").encode("utf-8"))
+        with self.lock():
+            self.entries()  # refuse to overwrite an index that cannot be read
+            self.folder.mkdir(parents=True, exist_ok=True)
+            _atomic_write(self.index_path, _index_bytes(data))
         return out
 
     def get(self, serve_id: str) -> LibraryEntry:
@@ -272,11 +377,14 @@ class ServeLibrary:
         ``efforts``: the motion's :class:`studio.evaluate.EffortReport`; its peak force/torque
         per joint, time and ratio to the nominal effort go into the entry's ``robot.efforts``.
 
-        Raises InvalidInputError when the evaluation has no motion plan to export.
+        Raises InvalidInputError when the evaluation has no motion plan to export,
+        DataFileError (nothing written) when the library's index cannot be read,
+        :class:`~studio.filelock.LockTimeoutError` when another writer holds the library.
         """
         ev = evaluation
         if ev.t is None or ev.u is None or ev.q is None:
             raise InvalidInputError(f"serve {ev.serve.name!r} has no motion plan to export ({ev.status}: {ev.reason})")
+        self.entries()  # a corrupt library stops the export before any work (checked again under the lock)
         from studio.planner import SETTLE, serve_arrays  # casadi & pinocchio: not at import (dashboard)
 
         motion = getattr(ev, "motion", None)
@@ -287,8 +395,6 @@ class ServeLibrary:
                 raise InvalidInputError(f"preparation arrays must be (P, 8), got {pu.shape} and {pq.shape}")
         arr = serve_arrays(ev.t, ev.u, ev.q, getattr(motion, "qd", None), _shipped_dynamics(), preparation=preparation)
         t, u, q, t_toss = arr.t, arr.u, arr.q, arr.t_toss
-        entries = self.entries()  # validate before writing anything
-        self.folder.mkdir(parents=True, exist_ok=True)
         slug = re.sub(r"[^a-z0-9]+", "-", ev.serve.name.lower()).strip("-")[:40] or "serve"
         sid = f"{slug}-{uuid.uuid4().hex[:8]}"
         ball_t = np.asarray(ev.ball.t) - float(np.asarray(ev.t)[0]) + t_toss if ev.ball is not None else np.zeros(0)
@@ -304,7 +410,6 @@ class ServeLibrary:
             t_toss=np.array(t_toss),
             joint_names=np.array(load_spec().joint_names),
         )
-        _atomic_write(self.folder / f"{sid}.npz", buf.getvalue())
         m = ev.metrics
         serve_json = ev.serve.to_json()
         entry = {
@@ -329,8 +434,24 @@ class ServeLibrary:
         cup = getattr(ev, "cup_hold", None)
         if cup is not None and preparation is not None and preparation is getattr(motion, "preparation", None):
             entry["cup_hold"] = cup.to_json()  # checked on this preparation, on the arrays' clock
-        doc = {"schema": LIBRARY_SCHEMA, "serves": [e.data for e in entries] + [entry]}
-        _atomic_write(self.index_path, (json.dumps(doc, indent=2) + "\n").encode("utf-8"))
+        entry = json.loads(json.dumps(entry))  # plain JSON values, validated as they will be read
+        self._validated([entry])
+        return self._commit(entry, buf.getvalue())
+
+    def _commit(self, entry: dict[str, Any], npz: bytes) -> LibraryEntry:
+        """Under the library lock: re-read and validate the index, write the entry's NPZ,
+        then the index with the entry appended (both atomic). A corrupt index stops it
+        before anything is written; if the index write fails the NPZ is removed again."""
+        npz_path = self.folder / str(entry["arrays"])
+        with self.lock():
+            entries = self.entries()  # what is there now (another writer may have added)
+            _atomic_write(npz_path, npz)
+            doc = {"schema": LIBRARY_SCHEMA, "serves": [e.data for e in entries] + [entry]}
+            try:
+                _atomic_write(self.index_path, _index_bytes(doc))
+            except BaseException:
+                npz_path.unlink(missing_ok=True)  # no orphan arrays
+                raise
         return LibraryEntry(entry, self.folder)
 
 

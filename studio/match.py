@@ -11,8 +11,15 @@ Match log (``matches.jsonl`` in a library folder, one JSON object per point, sch
   legally); then ``winner`` must be the server;
 - ``opponent`` (optional): the opponent's name.
 
-Points are appended with append + flush + fsync (one ``write`` of a whole line); a line
-cut short by a crash is reported by :func:`load_points` with its line number.
+Points are appended with append + flush + fsync (one ``write`` of a whole line,
+:func:`studio.jsonlog.append_jsonl`); a line cut short by a crash is reported by
+:func:`load_points` with its line number, and nothing is appended to such a log (the user
+completes or removes the line; a valid last line without its newline gets one first).
+
+Every writer (:func:`record_point`, :func:`sync_usage`, :func:`prune`) holds the library's
+lock (:meth:`studio.library.ServeLibrary.lock`) across its read-modify-write of the log and
+the index, and reads and validates both before writing anything: a corrupt file stops it
+(DataFileError naming file and line/field) and is kept byte for byte.
 
 Statistics (the paper's Table I): the robot's win probability while serving and while
 receiving with Binomial 95 % Wilson score intervals, aces (count and % of robot serves).
@@ -134,7 +141,19 @@ def point_from_json(doc: Any, *, where: str) -> Point:
     opponent = doc.get("opponent")
     if opponent is not None and not isinstance(opponent, str):
         raise InvalidInputError(f"{where}: field 'opponent' must be a string or absent")
+    for key in ("serve", "opponent"):
+        if isinstance(doc.get(key), str) and not _unicode(doc[key]):
+            raise InvalidInputError(f"{where}: field {key!r} is not valid Unicode (lone surrogate)")
     return Point(time=t, server=doc["server"], serve=serve, winner=doc["winner"], ace=doc["ace"], opponent=opponent)
+
+
+def _unicode(text: str) -> bool:
+    """True when ``text`` is valid Unicode (UTF-8 encodable: no lone surrogate)."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
 
 
 def load_points(path: str | Path) -> list[Point]:
@@ -146,7 +165,7 @@ def load_points(path: str | Path) -> list[Point]:
     if not path.exists():
         return []
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        lines = path.read_text(encoding="utf-8").split("\n")  # the writer's line end only
     except (OSError, UnicodeDecodeError) as err:
         raise DataFileError(path, f"cannot read: {err}") from None
     out: list[Point] = []
@@ -157,6 +176,8 @@ def load_points(path: str | Path) -> list[Point]:
             doc = json.loads(line)
         except json.JSONDecodeError as err:
             raise DataFileError(path, f"line {i}: not valid JSON (column {err.colno}): {err.msg}") from None
+        except (RecursionError, ValueError) as err:  # nested too deeply, an integer of > 4300 digits
+            raise DataFileError(path, f"line {i}: not a point ({err or 'JSON nested too deeply'})") from None
         try:
             out.append(point_from_json(doc, where=f"line {i}"))
         except InvalidInputError as err:
@@ -165,11 +186,16 @@ def load_points(path: str | Path) -> list[Point]:
 
 
 def append_point(path: str | Path, point: Point) -> None:
-    """Append one point to the log: validated, one write of a whole line, flushed and fsynced."""
+    """Append one point to the log: validated, one write of a whole line, flushed and fsynced.
+
+    A valid last point without its newline gets one first; a torn last line stops it
+    (DataFileError naming file and line, nothing appended). Callers writing a library's
+    log hold its lock (:func:`record_point` does).
+    """
     path = Path(path)
     point_from_json(point.to_json(), where=f"{path}: new point")
     path.parent.mkdir(parents=True, exist_ok=True)
-    append_jsonl(path, point.to_json())
+    append_jsonl(path, point.to_json(), parse=lambda d: point_from_json(d, where=f"{path}: last line"))
 
 
 def record_point(
@@ -198,22 +224,24 @@ def record_point(
 
     Raises:
         InvalidInputError: the serve is missing, unknown or given for an opponent serve, or
-            the point is malformed (field named); DataFileError: the log is corrupt (nothing
-            is appended to it then).
+            the point is malformed (field named); DataFileError: the log or the index is
+            corrupt (nothing is written then); LockTimeoutError: another writer holds the
+            library too long.
     """
-    entries = library.entries()
-    if server == "robot":
-        if serve is None:
-            raise InvalidInputError("the robot's serve (library id) is required when the robot serves")
-        if serve not in {e.id for e in entries}:
-            raise InvalidInputError(f"serve {serve!r} not found in library {library.folder}")
-    elif serve is not None:
+    if server == "opponent" and serve is not None:
         raise InvalidInputError("a serve id is only for robot serves (server 'robot')")
-    log = library.folder / MATCH_LOG
-    points = load_points(log)  # refuse to append to a corrupt log
+    if server == "robot" and serve is None:
+        raise InvalidInputError("the robot's serve (library id) is required when the robot serves")
     point = Point(time=time or datetime.now(UTC).isoformat(timespec="seconds"), server=server, serve=serve, winner=winner, ace=ace, opponent=opponent or None)
-    append_point(log, point)
-    sync_usage(library, points + [point])
+    point_from_json(point.to_json(), where="new point")
+    with library.lock():  # log + counters: one read-modify-write among all writers
+        entries = library.entries()  # refuse to write to a library with a corrupt index
+        if server == "robot" and serve not in {e.id for e in entries}:
+            raise InvalidInputError(f"serve {serve!r} not found in library {library.folder}")
+        log = library.folder / MATCH_LOG
+        points = load_points(log)  # refuse to append to a corrupt log
+        append_point(log, point)
+        sync_usage(library, points + [point])
     return points + [point]
 
 
@@ -370,15 +398,17 @@ def prune_candidates(records: dict[str, ServeRecord], *, min_uses: int = MIN_USE
 
 def sync_usage(library: ServeLibrary, points: Sequence[Point]) -> list[LibraryEntry]:
     """Rewrite the library's usage counters from the log (the log is the source of truth;
-    serves absent from the log get zero counters). Atomic index write."""
-    entries = library.entries()
-    records = serve_records(points, [e.id for e in entries])
-    serves = []
-    for e in entries:
-        d = dict(e.data)
-        d["usage"] = records[e.id].usage()
-        serves.append(d)
-    return library.replace_entries(serves)
+    serves absent from the log get zero counters). Atomic index write under the library
+    lock; the caller holds it too when ``points`` come from its own read of the log."""
+    with library.lock():
+        entries = library.entries()
+        records = serve_records(points, [e.id for e in entries])
+        serves = []
+        for e in entries:
+            d = dict(e.data)
+            d["usage"] = records[e.id].usage()
+            serves.append(d)
+        return library.replace_entries(serves)
 
 
 def prune(library: ServeLibrary, ids: Sequence[str]) -> list[str]:
@@ -387,8 +417,16 @@ def prune(library: ServeLibrary, ids: Sequence[str]) -> list[str]:
     Order, so that a crash never leaves the main index pointing at a missing NPZ: copy the
     NPZ files into ``pruned/``, write ``pruned/index.json``, rewrite the main index, then
     delete the original NPZ files. Returns the pruned ids.
+
+    Holds the library's lock throughout (and the pruned library's while writing it); both
+    indexes are read and validated before anything is copied or written.
     """
-    ids = list(dict.fromkeys(ids))
+    with library.lock():
+        return _prune_locked(library, list(dict.fromkeys(ids)))
+
+
+def _prune_locked(library: ServeLibrary, ids: list[str]) -> list[str]:
+    """:func:`prune` with the library lock held."""
     entries = library.entries()
     by_id = {e.id: e for e in entries}
     unknown = [i for i in ids if i not in by_id]
@@ -397,13 +435,13 @@ def prune(library: ServeLibrary, ids: Sequence[str]) -> list[str]:
     if not ids:
         return []
     pruned_lib = ServeLibrary(library.folder / PRUNED_DIR)
-    kept_pruned = [e.data for e in pruned_lib.entries() if e.id not in ids]
-    pruned_lib.folder.mkdir(parents=True, exist_ok=True)
-    for sid in ids:
-        src = library.folder / str(by_id[sid].data["arrays"])
-        if src.exists():
-            shutil.copy2(src, pruned_lib.folder / src.name)
-    pruned_lib.replace_entries(kept_pruned + [by_id[sid].data for sid in ids])
+    with pruned_lib.lock():
+        kept_pruned = [e.data for e in pruned_lib.entries() if e.id not in ids]
+        for sid in ids:
+            src = library.folder / str(by_id[sid].data["arrays"])
+            if src.exists():
+                shutil.copy2(src, pruned_lib.folder / src.name)
+        pruned_lib.replace_entries(kept_pruned + [by_id[sid].data for sid in ids])
     library.replace_entries([e.data for e in entries if e.id not in ids])
     for sid in ids:
         (library.folder / str(by_id[sid].data["arrays"])).unlink(missing_ok=True)

@@ -25,7 +25,12 @@ budget, nothing repeated) but no longer matches the uninterrupted run point for 
 Workers are *spawned* processes (torch is loaded in the parent; fork after torch is
 unsafe), so a script that calls :func:`optimize_serve` with ``workers > 1`` needs the
 usual ``if __name__ == "__main__":`` guard. Each worker runs its BLAS/OpenMP pools with
-one thread (see :data:`WORKER_THREAD_VARS`).
+one thread (see :data:`WORKER_THREAD_VARS`). Workers die with their driver: on Linux each
+asks the kernel for SIGKILL when its parent ends (``prctl(PR_SET_PDEATHSIG)``, elsewhere a
+thread polls ``os.getppid()``), so a ``kill -9`` of the driver leaves no worker behind. A
+worker that dies (killed, out of memory) ends the run with :class:`WorkerDiedError` (one
+line: which worker, how, and that ``--resume`` continues; every evaluation finished
+before it is in the log, and the resume evaluates the rest of the budget once).
 
 Training on the mean toss only (``tosses=1``) overfits it: in the measured 2000-evaluation
 run (``benchmarks/train.py``) the best training reward was +1.54 but the chosen serve's
@@ -35,13 +40,17 @@ that visible; train with ``tosses=K`` (the paper's multi-toss training) for robu
 
 from __future__ import annotations
 
+import ctypes
 import json
 import math
 import multiprocessing as mp
 import os
+import signal
+import sys
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
@@ -49,9 +58,9 @@ from typing import Any, Callable, Iterator, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from studio.errors import DataFileError, InvalidInputError
+from studio.errors import DataFileError, InvalidInputError, StudioError
 from studio.hebo_adapter import HeboAdapter, HeboConfig
-from studio.jsonlog import read_jsonl, write_line
+from studio.jsonlog import ensure_line_end, read_jsonl, write_line
 from studio.reward import PLANNER_FAILURE_PENALTY
 from studio.serve import GENE_NAMES, GenomeBounds, HandServe, LimitScale, ServeParams, TossSide
 from studio.threads import THREAD_VARS, single_thread_env
@@ -63,6 +72,7 @@ __all__ = [
     "FinalCandidate",
     "OptimizationResult",
     "EvaluatorPool",
+    "WorkerDiedError",
     "RunHistory",
     "load_run_history",
     "RunSummary",
@@ -228,10 +238,48 @@ WORKER_THREAD_VARS = THREAD_VARS
 """Thread-count variables set to 1 in evaluation workers (:mod:`studio.threads`)."""
 
 
-def _worker_init(side: TossSide | None = None, ipopt_fallback: bool = False) -> None:
-    """Initializer of an evaluation process: one thread per BLAS/OpenMP pool, a training
+PR_SET_PDEATHSIG = 1
+"""Linux ``prctl`` option: the signal this process gets when its parent ends."""
+PARENT_POLL = 0.5
+"""Seconds between parent checks of a worker where ``prctl`` is not available."""
+
+
+class WorkerDiedError(StudioError):
+    """An evaluation worker process ended abruptly (killed, out of memory) during a run."""
+
+
+def _watch_parent(parent_pid: int) -> None:
+    """Exit this process as soon as its parent is no longer ``parent_pid`` (polling)."""
+    while os.getppid() == parent_pid:
+        time.sleep(PARENT_POLL)
+    os._exit(1)
+
+
+def _die_with_parent(parent_pid: int | None) -> None:
+    """Make this (worker) process end when its parent ``parent_pid`` ends, however it
+    ends: SIGKILL from the kernel (Linux ``prctl(PR_SET_PDEATHSIG)`` via ctypes), else a
+    daemon thread polling ``os.getppid()``. Exits at once if the parent is gone already
+    (it died before this ran). ``None``: nothing to watch (in-process use)."""
+    if parent_pid is None:
+        return
+    armed = False
+    if sys.platform.startswith("linux"):
+        try:
+            armed = ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0
+        except (OSError, AttributeError):
+            armed = False
+    if os.getppid() != parent_pid:
+        os._exit(1)
+    if not armed:
+        threading.Thread(target=_watch_parent, args=(parent_pid,), name="watch-parent", daemon=True).start()
+
+
+def _worker_init(side: TossSide | None = None, ipopt_fallback: bool = False, parent_pid: int | None = None) -> None:
+    """Initializer of an evaluation process: tied to the life of ``parent_pid`` (the
+    driver; :func:`_die_with_parent`), one thread per BLAS/OpenMP pool, a training
     context (:meth:`EvaluationContext.for_training`) warmed up for ``side``."""
     global _WORKER_CONTEXT
+    _die_with_parent(parent_pid)
     single_thread_env(keep_user_settings=False)
     from threadpoolctl import threadpool_limits
 
@@ -283,6 +331,8 @@ class EvaluatorPool:
     at construction and initialize in the background (about 3 s) while the caller goes on.
     Every candidate is planned with ``limit_scale`` (:class:`~studio.serve.LimitScale`).
     Use as a context manager; ``evaluate`` overrides the real evaluation (in-process).
+    The workers end with this process (:func:`_die_with_parent`); if one dies, :meth:`map`
+    raises :class:`WorkerDiedError` naming it and how it ended.
     """
 
     def __init__(
@@ -298,7 +348,7 @@ class EvaluatorPool:
         self.limit_scale = limit_scale if limit_scale is not None else LimitScale()
         self._pool: ProcessPoolExecutor | None = None
         if evaluate is None and workers > 1:
-            self._pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init, initargs=(side, self._ipopt_fallback))
+            self._pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init, initargs=(side, self._ipopt_fallback, os.getpid()))
             # spawn every worker now (submit starts the processes), with the single-thread
             # variables in its environment from the start (set in os.environ of this
             # process only while spawning); they initialize while the caller goes on
@@ -313,6 +363,24 @@ class EvaluatorPool:
                         os.environ.pop(v, None)
                     else:
                         os.environ[v] = old
+        self._procs = list(getattr(self._pool, "_processes", {}).values())  # for naming a dead worker
+
+    def _died(self) -> WorkerDiedError:
+        """The error for a broken pool: which worker died and how (exit code or signal)."""
+        deadline = time.monotonic() + 2.0
+        for proc in self._procs:  # the pool is ending them all; wait briefly for their exit codes
+            proc.join(max(0.0, deadline - time.monotonic()))
+        ended = [(proc.pid, proc.exitcode) for proc in self._procs if proc.exitcode not in (None, 0)]
+        first = [e for e in ended if e[1] != -signal.SIGTERM] or ended  # the pool SIGTERMs the others
+        how = []
+        for pid, code in first:
+            if code < 0:
+                name = signal.Signals(-code).name if -code in signal.valid_signals() else f"signal {-code}"
+                how.append(f"evaluation worker pid {pid} was killed by {name}")
+            else:
+                how.append(f"evaluation worker pid {pid} exited with code {code}")
+        what = "; ".join(how) or "an evaluation worker process ended abruptly (killed or out of memory)"
+        return WorkerDiedError(f"{what}: the evaluation pool is broken")
 
     def __enter__(self) -> EvaluatorPool:
         return self
@@ -335,11 +403,18 @@ class EvaluatorPool:
         if self._evaluate is not None or self._pool is None:
             return self._map_here(X, tosses, rng_seeds)
         scale = self.limit_scale.to_json()
-        futs = [self._pool.submit(_worker_eval, (self.side, self.task, [float(v) for v in x], tosses, self.p, int(s), scale)) for x, s in zip(X, rng_seeds)]
+        pool = self._pool
+        try:
+            futs = [pool.submit(_worker_eval, (self.side, self.task, [float(v) for v in x], tosses, self.p, int(s), scale)) for x, s in zip(X, rng_seeds)]
+        except BrokenProcessPool:
+            raise self._died() from None
 
         def results() -> Iterator[tuple[Outcome, float]]:
             for f in futs:
-                d, sec = f.result()
+                try:
+                    d, sec = f.result()
+                except BrokenProcessPool:
+                    raise self._died() from None
                 d["rewards"] = tuple(d["rewards"])
                 yield Outcome(**d), sec
 
@@ -549,7 +624,11 @@ def list_runs(runs_dir: str | Path, *, side: str | None = None, task: str | None
 
 
 class _Log:
+    """The run's ``evaluations.jsonl``, opened for appending (after a missing final newline
+    of a complete last record is repaired: :func:`studio.jsonlog.ensure_line_end`)."""
+
     def __init__(self, path: Path) -> None:
+        ensure_line_end(path, EvaluationRecord.from_json)
         self.f = open(path, "a", encoding="utf-8")
 
     def write(self, rec: EvaluationRecord) -> None:
@@ -840,6 +919,11 @@ def optimize_serve(
                     )  # fmt: skip
                 candidates.sort(key=lambda c: -c.mean_reward)
             timings["final"] = time.perf_counter() - t0
+        except WorkerDiedError as exc:
+            raise WorkerDiedError(
+                f"{exc}; the {len(records)} evaluations finished before are logged in {log_path}: "
+                f"continue the run with --resume --run-dir {run_dir}"
+            ) from None
         finally:
             log.close()
 

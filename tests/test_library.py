@@ -200,3 +200,122 @@ def test_export_records_the_peak_joint_efforts_when_given(tmp_path: Path) -> Non
     stored = lib.get(entry.id).data["robot"]["efforts"]
     assert stored == rep.to_json() and len(stored["usage"]) == 8
     assert "efforts" not in lib.add(ev).data["robot"]  # optional
+
+
+# --- a library that cannot be read is never rewritten --------------------------------------------
+
+CORRUPT = [  # (what, mutation of a valid index, field named in the error)
+    ("NaN in the net state", lambda d: d["serves"][0]["net"]["v"].__setitem__(0, float("nan")), "serves[0].net.v[0]"),
+    ("a string where the net state goes", lambda d: d["serves"][0].__setitem__("net", "fast"), "serves[0].net"),
+    ("Infinity in a second-bounce spin", lambda d: d["serves"][0]["second_bounce"].__setitem__("topspin", float("inf")), "serves[0].second_bounce.topspin"),
+    ("a 10**400 counter", lambda d: d["serves"][0]["usage"].__setitem__("used", 10**400), "serves[0].usage.used"),
+    ("a lone surrogate in a name", lambda d: d["serves"][0].__setitem__("name", "top\ud800spin"), "serves[0].name"),
+    ("NaN in a reward term", lambda d: d["serves"][0]["terms"].__setitem__("r_pos", float("nan")), "serves[0].terms.r_pos"),
+]
+
+
+@pytest.mark.parametrize("what, mutate, field", CORRUPT, ids=[c[0] for c in CORRUPT])
+def test_no_writer_rewrites_a_corrupt_index(tmp_path: Path, evaluation, what, mutate, field, capsys: pytest.CaptureFixture[str]) -> None:  # type: ignore[no-untyped-def]
+    import re
+
+    from studio.cli import main
+    from studio.match import MATCH_LOG, prune, record_point, sync_usage
+
+    lib = ServeLibrary(tmp_path / "lib")
+    sid = lib.add(evaluation).id
+    doc = json.loads(lib.index_path.read_text())
+    mutate(doc)
+    lib.index_path.write_text(json.dumps(doc, indent=1))  # Python's json writes NaN, Infinity, huge ints, \ud800
+    original = lib.index_path.read_bytes()
+    files = sorted(p.name for p in lib.folder.iterdir())
+    named = rf"index.json: field '{re.escape(field)}'"
+    writers = [
+        lambda: lib.add(evaluation),
+        lambda: record_point(lib, server="robot", serve=sid, winner="robot"),
+        lambda: record_point(lib, server="opponent", winner="robot"),
+        lambda: sync_usage(lib, []),
+        lambda: prune(lib, [sid]),
+        lambda: lib.replace_entries([json.loads(json.dumps(doc["serves"][0]).replace("NaN", "0").replace("Infinity", "0"))]),
+    ]
+    for write in writers:
+        with pytest.raises(DataFileError, match=named):
+            write()
+        assert lib.index_path.read_bytes() == original  # kept byte for byte
+        assert sorted(p.name for p in lib.folder.iterdir()) == files  # no NPZ, no log, no pruned/ folder
+    for argv in (["library", "record", str(lib.folder), "--server", "opponent", "--winner", "robot"], ["library", "prune", str(lib.folder), "--min-uses", "1"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert re.search(named, err) and "Traceback" not in err and err.count("\n") == 1
+    assert lib.index_path.read_bytes() == original and not (lib.folder / MATCH_LOG).exists()
+
+
+def test_cli_export_to_a_corrupt_library_exits_2_and_keeps_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from studio.cli import main
+
+    folder = tmp_path / "lib"
+    folder.mkdir()
+    index = folder / INDEX_NAME
+    index.write_bytes(b'{"schema": "serve-studio/library@1", "serves": [{"id": "x", "net": NaN}]}\n')
+    original = index.read_bytes()
+    assert main(["evaluate", str(EXAMPLE), "--export", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert "index.json: field 'serves[0].net': must be a finite number" in err and "Traceback" not in err
+    assert index.read_bytes() == original and sorted(p.name for p in folder.iterdir()) == [INDEX_NAME]
+
+
+def test_legacy_infinite_cup_ratio_is_read_and_kept(tmp_path: Path, evaluation) -> None:  # type: ignore[no-untyped-def]
+    lib = ServeLibrary(tmp_path)
+    lib.add(evaluation)
+    doc = json.loads(lib.index_path.read_text())
+    doc["serves"][0].setdefault("cup_hold", {})["worst_ratio"] = float("inf")  # written by an earlier version
+    lib.index_path.write_text(json.dumps(doc))
+    assert lib.entries()[0].data["cup_hold"]["worst_ratio"] == float("inf")
+    lib.add(evaluation)  # a write keeps it as it was
+    assert json.loads(lib.index_path.read_text())["serves"][0]["cup_hold"]["worst_ratio"] == float("inf")
+    doc["serves"][0]["cup_hold"]["worst_ratio"] = float("nan")  # NaN never
+    lib.index_path.write_text(json.dumps(doc))
+    with pytest.raises(DataFileError, match=r"serves\[0\].cup_hold.worst_ratio"):
+        lib.entries()
+
+
+def test_export_writes_arrays_first_and_removes_them_when_the_index_write_fails(tmp_path: Path, evaluation, monkeypatch: pytest.MonkeyPatch) -> None:  # type: ignore[no-untyped-def]
+    import studio.library as L
+
+    lib = ServeLibrary(tmp_path)
+    first = lib.add(evaluation)
+    original = lib.index_path.read_bytes()
+    written: list[str] = []
+    real = L._atomic_write
+
+    def failing(path: Path, data: bytes) -> None:
+        written.append(path.name)
+        if path.name == INDEX_NAME:
+            raise OSError(28, "No space left on device")
+        real(path, data)
+
+    monkeypatch.setattr(L, "_atomic_write", failing)
+    with pytest.raises(OSError, match="No space"):
+        lib.add(evaluation)
+    assert written[0].endswith(".npz") and written[1] == INDEX_NAME  # arrays first, index last
+    assert lib.index_path.read_bytes() == original
+    assert sorted(p.name for p in tmp_path.glob("*.npz")) == [first.data["arrays"]]  # no orphan NPZ
+
+
+@pytest.mark.parametrize(
+    "raw, message",
+    [
+        (b'{"schema": "serve-studio/library@1", "serves": [], "n": ' + b"9" * 5000 + b"}", "not a library index: Exceeds the limit"),
+        (b"[" * 100_000 + b"]" * 100_000, "not a library index: JSON nested too deeply"),
+        (b'{"schema": "serve-studio/library@1", "serves": [], "name": "\xed\xa0\x80"}', "not UTF-8 text"),
+    ],
+    ids=["5000-digit integer", "nested 100000 deep", "encoded lone surrogate"],
+)
+def test_unparsable_index_is_reported_and_kept(tmp_path: Path, raw: bytes, message: str) -> None:
+    from studio.match import record_point, sync_usage
+
+    lib = ServeLibrary(tmp_path)
+    lib.index_path.write_bytes(raw)
+    for write in (lambda: record_point(lib, server="opponent", winner="robot"), lambda: sync_usage(lib, [])):
+        with pytest.raises(DataFileError, match=f"index.json: {message}"):
+            write()
+    assert lib.index_path.read_bytes() == raw and sorted(p.name for p in tmp_path.iterdir()) == [".lock", INDEX_NAME]

@@ -291,3 +291,44 @@ def test_record_point_and_next_serve_continue_a_match_from_the_log(tmp_path: Pat
         with pytest.raises(InvalidInputError, match=match):
             record_point(lib, **bad)  # type: ignore[arg-type]
     assert len(load_points(lib.folder / MATCH_LOG)) == 2  # nothing appended by the refused points
+
+
+# --- appends never glue records; a torn or corrupt log is kept and reported -----------------------
+
+
+def test_record_repairs_a_missing_final_newline_and_refuses_a_torn_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from studio.match import record_point
+
+    lib = make_library(tmp_path / "lib", [("top", 250.0, 0.0), ("back", -200.0, 0.0)])
+    log = lib.folder / MATCH_LOG
+    record_point(lib, server="robot", serve="top", winner="robot", time=T0)
+    record_point(lib, server="opponent", winner="opponent", time=T0)
+    log.write_bytes(log.read_bytes().rstrip(b"\n"))  # a valid last line without its newline (hand-edited)
+    points = record_point(lib, server="robot", serve="back", winner="opponent", time=T0)
+    assert len(points) == 3 and load_points(log) == points  # both lines parse: nothing glued
+    assert log.read_bytes().count(b"\n") == 3 and log.read_bytes().endswith(b"\n")
+    assert lib.get("back").data["usage"]["used"] == 1
+
+    log.write_bytes(log.read_bytes() + b'{"time": "2026-04-12T10:00:00+00:00", "server": "rob')  # torn by a kill
+    torn = log.read_bytes()
+    index = (lib.folder / INDEX_NAME).read_bytes()
+    with pytest.raises(DataFileError, match=r"matches.jsonl: line 4: not valid JSON"):
+        record_point(lib, server="opponent", winner="robot", time=T0)
+    with pytest.raises(DataFileError, match=r"matches.jsonl: line 4: incomplete last line"):
+        append_point(log, receive("robot"))  # the appender itself refuses too
+    assert main(["library", "record", str(lib.folder), "--server", "opponent", "--winner", "robot"]) == 2
+    err = capsys.readouterr().err
+    assert "matches.jsonl: line 4" in err and "Traceback" not in err
+    assert log.read_bytes() == torn and (lib.folder / INDEX_NAME).read_bytes() == index  # both kept byte for byte
+
+
+def test_a_point_with_a_lone_surrogate_is_refused(tmp_path: Path) -> None:
+    from studio.match import record_point
+
+    lib = make_library(tmp_path / "lib", [("top", 250.0, 0.0)])
+    with pytest.raises(InvalidInputError, match="'opponent' is not valid Unicode"):
+        record_point(lib, server="opponent", winner="robot", opponent="M. \udcc3bel")  # undecodable argv byte
+    assert not (lib.folder / MATCH_LOG).exists()
+    (lib.folder / MATCH_LOG).write_text(json.dumps({"time": T0, "server": "opponent", "serve": None, "winner": "robot", "ace": False, "opponent": "\ud800"}) + "\n")
+    with pytest.raises(DataFileError, match="line 1: field 'opponent' is not valid Unicode"):
+        load_points(lib.folder / MATCH_LOG)

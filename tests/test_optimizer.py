@@ -6,7 +6,9 @@ import dataclasses
 
 import json
 import math
+import os
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -423,3 +425,134 @@ def test_resume_without_seeds_keeps_the_runs_own(tmp_path: Path) -> None:
     res = run(tmp_path, iterations=2, seeds=[], resume=True)
     assert json.loads((tmp_path / "run.json").read_text())["seeds"] == recorded  # not overwritten with []
     assert res.evaluations == 2 + 2 * 4 and [r["source"] for r in read_log(tmp_path)][:2] == ["seed:hand0", "seed:hand1"]
+
+
+# --- worker processes: they die with the driver; a dead worker ends the run with a message ---------
+
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "serves" / "topspin_right.json"
+
+
+def _cli(run_dir: Path, iterations: int, *extra: str) -> list[str]:
+    import sys
+
+    exe = Path(sys.executable).with_name("serve-studio")
+    head = [str(exe)] if exe.exists() else [sys.executable, "-c", "import sys; from studio.cli import main; sys.exit(main())"]
+    return head + ["optimize", str(EXAMPLE), "--side", "right", "--task", "topspin_velocity", "--iterations", str(iterations),
+                   "--population", "4", "--workers", "2", "--run-dir", str(run_dir), *extra]  # fmt: skip
+
+
+def _proc_stat(pid: int) -> tuple[int, str] | None:
+    """(parent pid, state) of a process from /proc, None when it no longer exists."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    state, ppid = stat.rsplit(")", 1)[1].split()[:2]
+    return int(ppid), state
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def _descendants(pid: int) -> dict[int, str]:
+    """Living descendants of ``pid``: pid -> command line."""
+    parent: dict[int, int] = {}
+    for entry in Path("/proc").iterdir():
+        st = _proc_stat(int(entry.name)) if entry.name.isdigit() else None
+        if st is not None and st[1] != "Z":
+            parent[int(entry.name)] = st[0]
+    found: dict[int, str] = {}
+    frontier = [pid]
+    while frontier:
+        kids = [k for k, pp in parent.items() if pp in frontier and k not in found]
+        found.update({k: _cmdline(k) for k in kids})
+        frontier = kids
+    return found
+
+
+def _workers(pid: int, timeout: float = 120.0, *, log: Path | None = None, lines: int = 0) -> list[int]:
+    """Wait until ``pid`` has 2 spawned evaluation workers (and ``log`` ``lines`` lines)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        workers = [p for p, cmd in _descendants(pid).items() if "spawn_main" in cmd]
+        enough = log is None or (log.exists() and log.read_text().count("\n") >= lines)
+        if len(workers) == 2 and enough:
+            return workers
+        assert _alive(pid), "the optimize run ended before the check"
+        time.sleep(0.05)
+    raise AssertionError(f"no 2 workers (and {lines} logged lines) within {timeout} s")
+
+
+def _alive(pid: int) -> bool:
+    st = _proc_stat(pid)
+    return st is not None and st[1] != "Z"  # a zombie has ended (its reaper was killed)
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc")
+@pytest.mark.parametrize("when", ["spawned", "evaluating"])
+def test_kill_9_of_the_driver_takes_its_workers_along(tmp_path: Path, when: str) -> None:
+    import signal
+    import subprocess
+
+    run_dir = tmp_path / "run"
+    driver = subprocess.Popen(_cli(run_dir, 3 if when == "spawned" else 40), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    family: dict[int, str] = {}
+    try:
+        workers = _workers(driver.pid, log=run_dir / "evaluations.jsonl" if when == "evaluating" else None, lines=1)
+        family = _descendants(driver.pid)  # the workers and multiprocessing's resource tracker
+        assert set(workers) <= set(family)
+        os.kill(driver.pid, signal.SIGKILL)
+        driver.wait(10)
+        t0 = time.monotonic()
+        while any(_alive(p) for p in family) and time.monotonic() - t0 < 10.0:
+            time.sleep(0.02)
+        gone_after = time.monotonic() - t0
+        assert not any(_alive(p) for p in family), f"still alive {gone_after:.1f} s after kill -9 of the driver: {[p for p in family if _alive(p)]}"
+        assert gone_after < 3.0
+        print(f"[{when}] {len(family)} child processes gone {gone_after:.2f} s after kill -9 of the driver")
+    finally:
+        if driver.poll() is None:
+            driver.kill()
+        for p in family:  # orphans of a failed check (never other processes: same command line)
+            if _alive(p) and _cmdline(p) == family[p]:
+                os.kill(p, signal.SIGKILL)
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc")
+def test_a_killed_worker_ends_the_run_with_a_message_and_resume_completes_it(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+
+    run_dir = tmp_path / "run"
+    log = run_dir / "evaluations.jsonl"
+    driver = subprocess.Popen(_cli(run_dir, 12), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        victim = _workers(driver.pid, log=log, lines=5)[0]  # the seed and batch 0 are logged
+        os.kill(victim, signal.SIGKILL)
+        _out, err = driver.communicate(timeout=60)
+    finally:
+        if driver.poll() is None:
+            driver.kill()
+    assert driver.returncode == 2, err
+    assert "Traceback" not in err and "BrokenProcessPool" not in err
+    message = [line for line in err.splitlines() if line.startswith("serve-studio optimize: error:")]
+    assert len(message) == 1, err
+    assert f"evaluation worker pid {victim} was killed by SIGKILL" in message[0]
+    assert f"continue the run with --resume --run-dir {run_dir}" in message[0]
+    before = log.read_bytes()
+    n_before = before.count(b"\n")
+    assert 5 <= n_before < 1 + 12 * 4
+    assert f"the {n_before} evaluations finished before are logged" in message[0]
+
+    resumed = subprocess.run(_cli(run_dir, 12, "--resume"), capture_output=True, text=True, timeout=300)
+    assert resumed.returncode in (0, 1), resumed.stderr  # 1: the chosen serve is not legal
+    after = log.read_bytes()
+    assert after.startswith(before)  # nothing logged before the kill lost or rewritten
+    records = read_log(run_dir)
+    assert [r["index"] for r in records] == list(range(1 + 12 * 4))  # each evaluation once, the budget complete
+    genomes = [tuple(r["genome"]) for r in records]
+    assert len(set(genomes)) == len(genomes)
