@@ -277,8 +277,15 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from studio.errors import DataFileError, InvalidInputError
 
     folds = 5 if args.folds is None else args.folds
+    if args.no_serve_contacts and args.serve_contacts is not None:
+        print("error: --serve-contacts and --no-serve-contacts exclude each other", file=sys.stderr)
+        return 2
+    if args.write and args.no_cv:
+        print("error: --write records cross-validated figures: drop --no-cv", file=sys.stderr)
+        return 2
     contacts = None if args.no_serve_contacts else (args.serve_contacts or BC.SERVE_CONTACTS_CSV)
     try:
+        FC.load_match_events(args.match)  # a missing or malformed match file fails before the racket fits
         racket = BC.calibrate(folds=folds, repeats=args.repeats, serve_contacts=contacts)
         print("Racket impact model (velocity / spin error norms, RMS; CV = cross-validated per data set):")
         print(BC.format_table(racket))

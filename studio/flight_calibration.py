@@ -35,6 +35,7 @@ import csv
 import json
 import math
 import os
+import sys
 import tempfile
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, fields, replace
@@ -1301,7 +1302,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--no-cv", action="store_true", help="skip both cross-validations")
     ap.add_argument("--write", action="store_true", help=f"also write {FLIGHT_MODEL_JSON}")
     args = ap.parse_args(argv)
-    res = calibrate_flight(args.csv, folds=args.folds, player_cv=not args.no_cv, rally_cv=not args.no_cv)
+    try:
+        res = calibrate_flight(args.csv, folds=args.folds, player_cv=not args.no_cv, rally_cv=not args.no_cv)
+    except (DataFileError, InvalidInputError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print(format_flight_table(res))
     if args.write:
         write_flight_json(res)

@@ -222,3 +222,30 @@ def test_envelope_serves_hold_in_the_mujoco_rollout(capsys: pytest.CaptureFixtur
     assert main(["evaluate", str(path), "--mujoco", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["legal"] and check(out["net"])  # type: ignore[operator]
+
+
+def test_calibrate_refuses_bad_input_before_any_fit(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    assert main(["calibrate", "--match", str(tmp_path / "missing.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "missing.csv" in err and "not found" in err
+    bad = tmp_path / "match.csv"
+    bad.write_bytes(b"player_id,rally_id\n\xff\xfe\n")
+    assert main(["calibrate", "--match", str(bad)]) == 2
+    assert "match.csv" in capsys.readouterr().err
+    assert main(["calibrate", "--serve-contacts", str(bad), "--no-serve-contacts"]) == 2
+    assert "exclude each other" in capsys.readouterr().err
+
+
+def test_calibrate_prints_one_table_of_every_model(capsys: pytest.CaptureFixture[str]) -> None:
+    """The shipped data and the shared match file (skipped where ../shared is absent)."""
+    from studio.flight_calibration import DEFAULT_MATCH_CSV
+
+    if not DEFAULT_MATCH_CSV.is_file():
+        pytest.skip(f"match data not found at {DEFAULT_MATCH_CSV} (not shipped: ../shared/data/ace_match/)")
+    assert main(["calibrate", "--no-cv", "--folds", "2"]) == 0
+    out = capsys.readouterr().out
+    row = re.search(r"racket_01\s+serve_contacts\s+([\d.]+) m/s\s+([\d.]+) rad/s \|\s+([\d.]+) m/s\s+([\d.]+) rad/s", out)
+    assert row, out
+    assert float(row.group(3)) < 1.25 and float(row.group(4)) < 40.0  # the refit, 2-fold CV
+    rally = re.search(r"rally shot->bounce \(\d+\)\s+landing error median \[mm\]\s+([\d.]+)\s+([\d.]+)", out)
+    assert rally and float(rally.group(2)) < 110.0 < float(rally.group(1))  # after < target < before
