@@ -273,3 +273,18 @@ def test_ball_meets_the_rubber_at_tau_with_the_racket_state_the_file_asks(contex
     centre = before.position + v * (hit.t - t[i - 1])
     gap = abs(float((hit.p - centre) @ after.normal))
     assert gap == pytest.approx(0.027, abs=0.002)
+
+
+def test_contact_at_tau_with_an_offset_and_with_face_b(context: EvaluationContext) -> None:
+    """An offset with a normal part (dropped: the contact stays at tau) and the same stroke
+    with the opposite normal (the ball then meets face B, one standoff on the other side)."""
+    from dataclasses import replace
+
+    serve = load_serve(EXAMPLES[0].parent / "topspin_right.json")
+    p = serve.params
+    cases = [(replace(p, offset=(0.02, -0.03, 0.01)), "face_a"), (replace(p, yaw=p.yaw + math.pi, roll=-p.roll), "face_b")]
+    for params, face in cases:
+        ev = evaluate_serve(replace(serve, params=params), context, task=serve.task)
+        assert ev.ball is not None
+        hit = next(e for e in ev.ball.events if e.kind == "racket")
+        assert abs(hit.t - params.tau) < 1e-3 and hit.part == face
