@@ -1732,22 +1732,25 @@ def _local_fit_state(
 
 def _spinless_flight(p: FloatArray, v: FloatArray, t0: float, t1: float, flight: object, *, step: float = BACK_FLIGHT_STEP) -> tuple[FloatArray, FloatArray]:
     """Positions [m] and velocities [m/s] (C, 3) at ``t1`` [s] of spinless flights from
-    ``p``, ``v`` (C, 3) at ``t0`` [s] in still air: classic RK4 on
-    ``flight.acceleration`` (a :class:`studio.ball.FlightModel`) with equal steps of at
-    most ``step`` [s]; ``t1 < t0`` integrates backwards in time."""
+    ``p``, ``v`` (C, 3) at ``t0`` [s] in still air: classic RK4 on the flight model's
+    scalar derivative (``flight.scalar_derivative()``, a :class:`studio.ball.FlightModel`;
+    the same equations as its ``acceleration``, on Python floats: a single state costs
+    ~0.2 ms instead of ~3 ms with numpy) with equal steps of at most ``step`` [s];
+    ``t1 < t0`` integrates backwards in time."""
     n = max(int(math.ceil(abs(t1 - t0) / step - 1e-9)), 1)
     h = (t1 - t0) / n
-    w = np.zeros_like(v)
-    acc = flight.acceleration  # type: ignore[attr-defined]
-    p, v = np.array(p, dtype=float), np.array(v, dtype=float)
-    for _ in range(n):
-        k1 = acc(p, v, w)
-        k2 = acc(p, v + 0.5 * h * k1, w)
-        k3 = acc(p, v + 0.5 * h * k2, w)
-        k4 = acc(p, v + h * k3, w)
-        p = p + h * (v + h / 6.0 * (k1 + k2 + k3))
-        v = v + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-    return p, v
+    deriv = flight.scalar_derivative()  # type: ignore[attr-defined]
+    out = np.empty((len(p), 6))
+    for row, (p_i, v_i) in enumerate(zip(np.asarray(p, dtype=float), np.asarray(v, dtype=float), strict=True)):
+        y = [*p_i.tolist(), *v_i.tolist(), 0.0, 0.0, 0.0]
+        for _ in range(n):
+            k1 = deriv(y)
+            k2 = deriv([a + 0.5 * h * b for a, b in zip(y, k1)])
+            k3 = deriv([a + 0.5 * h * b for a, b in zip(y, k2)])
+            k4 = deriv([a + h * b for a, b in zip(y, k3)])
+            y = [a + h / 6.0 * (b1 + 2.0 * b2 + 2.0 * b3 + b4) for a, b1, b2, b3, b4 in zip(y, k1, k2, k3, k4)]
+        out[row] = y[:6]
+    return out[:, :3], out[:, 3:]
 
 
 def _align_recording(
