@@ -30,10 +30,9 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 from scipy.optimize import brentq, least_squares
-
-from studio import constants as C
 from scipy.spatial.transform import Rotation
 
+from studio import constants as C
 from studio.ball import (
     DEFAULT_RACKET,
     RACKET_DATA_DIR,
@@ -42,6 +41,7 @@ from studio.ball import (
     FlightModel,
     RacketModel,
     TableBounceModel,
+    _local_frame,
     simulate,
 )
 from studio.errors import DataFileError, InvalidInputError
@@ -206,8 +206,9 @@ CONTACT_COLUMNS = (
 """Columns a serve-contact CSV must have (the Ace robot's format; extra columns are ignored)."""
 
 
-def _read_numeric_csv(path: Path, columns: Sequence[str]) -> tuple[FloatArray, list[dict[str, str]]]:
-    """(N, len(columns)) finite values and the raw rows; DataFileError naming line and column."""
+def _read_numeric_csv(path: Path, columns: Sequence[str]) -> tuple[FloatArray, list[dict[str, str]], list[int]]:
+    """(N, len(columns)) finite values, the raw rows and their line numbers in the file;
+    DataFileError naming line and column."""
     try:
         with path.open(newline="", encoding="utf-8") as fh:
             reader = csv.DictReader(fh)
@@ -216,6 +217,7 @@ def _read_numeric_csv(path: Path, columns: Sequence[str]) -> tuple[FloatArray, l
                 raise DataFileError(path, f"line 1: missing column(s) {missing}")
             values: list[list[float]] = []
             raw: list[dict[str, str]] = []
+            lines: list[int] = []
             for row in reader:
                 line_no = reader.line_num
                 rec: list[float] = []
@@ -223,24 +225,14 @@ def _read_numeric_csv(path: Path, columns: Sequence[str]) -> tuple[FloatArray, l
                     rec.append(_finite_cell(path, line_no, name, row.get(name) or ""))
                 values.append(rec)
                 raw.append(row)
+                lines.append(line_no)
     except UnicodeDecodeError as exc:
         raise DataFileError(path, f"not UTF-8 text: {exc}") from exc
     except OSError as exc:
         raise DataFileError(path, f"cannot read: {exc}") from exc
     if not values:
         raise DataFileError(path, "no data rows")
-    return np.array(values, dtype=float), raw
-
-
-def _face_frames(normals: FloatArray) -> FloatArray:
-    """Rotations (N, 3, 3) whose third column is the unit normal of each row."""
-    frames = np.empty((len(normals), 3, 3))
-    for i, n in enumerate(normals):
-        a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-        x = np.cross(a, n)
-        x /= np.linalg.norm(x)
-        frames[i] = np.stack([x, np.cross(n, x), n], axis=1)
-    return frames
+    return np.array(values, dtype=float), raw, lines
 
 
 def load_serve_contacts_csv(path: str | os.PathLike[str] = SERVE_CONTACTS_CSV) -> BounceRows:
@@ -259,19 +251,19 @@ def load_serve_contacts_csv(path: str | os.PathLike[str] = SERVE_CONTACTS_CSV) -
             (file, line and column named), no rows, or a degenerate quaternion.
     """
     path = Path(path)
-    arr, raw = _read_numeric_csv(path, CONTACT_COLUMNS)
+    arr, raw, lines = _read_numeric_csv(path, CONTACT_COLUMNS)
     vec = {key: arr[:, 3 * i : 3 * i + 3] for i, key in enumerate(_CONTACT_GROUPS)}
     quat = arr[:, 18:22]
     qn = np.linalg.norm(quat, axis=1)
     if np.any(qn < 0.5) or np.any(qn > 1.5):
         bad = int(np.nonzero((qn < 0.5) | (qn > 1.5))[0][0])
-        raise DataFileError(path, f"line {bad + 2}, columns 'Orientation_*': not a unit quaternion (norm {qn[bad]:.3g})")
+        raise DataFileError(path, f"line {lines[bad]}, columns 'Orientation_*': not a unit quaternion (norm {qn[bad]:.3g})")
     normal = Rotation.from_quat(quat / qn[:, None]).as_matrix()[:, :, 0]
     # the racket-fixed point at the ball centre (offset Global_d*_pre from the racket centre)
     v_point = vec["v_racket"] + np.cross(vec["w_racket"], arr[:, 22:25])
     rel = vec["v_pre"] - v_point
     normal *= -np.sign(np.einsum("ij,ij->i", rel, normal) + 1e-300)[:, None]
-    frames = _face_frames(normal)
+    frames = np.array([_local_frame(n) for n in normal])  # z = the face normal
 
     def local(a: FloatArray) -> FloatArray:
         return np.einsum("nji,nj->ni", frames, a)
@@ -282,12 +274,12 @@ def load_serve_contacts_csv(path: str | os.PathLike[str] = SERVE_CONTACTS_CSV) -
         v_out=local(vec["v_post"] - v_point),
         w_out=local(vec["w_post"] - vec["w_racket"]),
         racket_angle=np.full(len(arr), np.nan),
-        traj_dir=tuple(f"line {i + 2}: {r.get('date', '')}{r.get('shot_ID', '')}" for i, r in enumerate(raw)),
+        traj_dir=tuple(f"line {n}: {r.get('date', '')}{r.get('shot_ID', '')}" for n, r in zip(lines, raw, strict=True)),
         source=str(path),
     )
     if np.any(rows.v_in[:, 2] >= 0.0) or np.any(rows.v_out[:, 2] <= 0.0):
         bad = int(np.nonzero((rows.v_in[:, 2] >= 0.0) | (rows.v_out[:, 2] <= 0.0))[0][0])
-        raise DataFileError(path, f"line {bad + 2}: the ball does not approach and leave the racket face")
+        raise DataFileError(path, f"line {lines[bad]}: the ball does not approach and leave the racket face")
     return rows
 
 

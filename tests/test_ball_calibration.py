@@ -121,10 +121,14 @@ def test_bounce_moving_uses_spin_relative_to_the_racket() -> None:
 
 def test_serve_contacts_loader_names_file_line_and_column(tmp_path: Path) -> None:
     header = ",".join(("date", "shot_ID") + BC.CONTACT_COLUMNS)
-    good = ["20250318", "/g/r/s"] + ["0.1"] * 18 + ["0", "0", "0", "1"]
+    good = ["20250318", "/g/r/s"] + ["0.1"] * 18 + ["0", "0", "0", "1"] + ["0.02", "0", "0"]
     p = tmp_path / "c.csv"
     p.write_text(header + "\n" + ",".join(good).replace("0.1", "x", 1) + "\n", encoding="utf-8")
     with pytest.raises(DataFileError, match=r"line 2, column 'Global_Ball_Vel_Pre_X'"):
+        BC.load_serve_contacts_csv(p)
+    # a zero quaternion after a blank line: the message names the file's own line (4)
+    p.write_text(header + "\n\n" + ",".join(good) + "\n" + ",".join(good[:-7] + ["0", "0", "0", "0"] + good[-3:]) + "\n", encoding="utf-8")
+    with pytest.raises(DataFileError, match=r"line 4, columns 'Orientation_\*': not a unit quaternion"):
         BC.load_serve_contacts_csv(p)
     p.write_text("a,b\n1,2\n", encoding="utf-8")
     with pytest.raises(DataFileError, match="missing column"):
