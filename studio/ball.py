@@ -551,12 +551,12 @@ class RacketModel:
     smooth Coulomb limit: the impulse follows the elastic one while it is small and
     saturates at ``J_max``. ``eta`` returns that fraction of the in-plane energy lost into
     the normal rebound, never beyond an elastic normal reversal (``v_z' <= v_n``): a
-    tangentially sheared rubber springs back partly along the normal. The robot's
-    brushing serves leave the racket with ``v_z' / v_n`` of 0.95-1.3 at slips
-    ``|u| / v_n > 2.5`` where ``e_b`` alone gives 0.9; the racket-at-rest rows (slips up to
-    1.8) show no such effect. The cap keeps the term bounded where the data end (a
-    loose brush at ``v_n`` -> 0 does not launch the ball off the face); fitted with and
-    without the cap, the cross-validated errors are the same.
+    tangentially sheared rubber springs back partly along the normal. The fit leaves it
+    nearly idle (``eta`` ~ 0.02 on racket_01): referenced to the racket centre's velocity
+    the serve contacts seemed to rebound above ``e_b v_n`` at large slip, but most of that
+    was the racket's rotation (``omega x d``), which :meth:`bounce_moving` now takes into
+    account. The cap keeps the term bounded where the data end (a loose brush at
+    ``v_n`` -> 0 does not launch the ball off the face).
 
     Physically sound by construction (tested on random impacts): isotropic in the face
     plane; the contact point's slip becomes ``(1 - s (1 + k)) u`` with
@@ -565,8 +565,9 @@ class RacketModel:
     ``eta <= 1`` of ``dE_t``; torsional friction only slows ``w_z``. No impact gains
     energy relative to the racket.
 
-    Moving racket (:meth:`bounce_moving`): the ball's velocity relative to the racket
-    surface and its spin relative to the racket's angular velocity enter the map; the
+    Moving racket (:meth:`bounce_moving`): the ball's velocity relative to the
+    racket-fixed point at its centre and its spin relative to the racket's angular
+    velocity enter the map (the contact point's slip is then exact); the
     racket's velocity and angular velocity are added back to the result (the scoring
     rule of the robot serve contacts' README).
 
