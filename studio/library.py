@@ -150,12 +150,21 @@ def _strict_json(value: Any, where: str, path: Path) -> None:
             raise DataFileError(path, f"field '{w}': must be a finite number, got {v!r}")
 
 
-def _check_text(text: str, where: str, path: Path) -> None:
-    """DataFileError unless ``text`` is valid Unicode (encodable as UTF-8: no lone surrogate)."""
+def lone_surrogate(text: str) -> int | None:
+    """Position of the first lone surrogate in ``text`` (not valid Unicode: cannot be
+    written as UTF-8), or None when the text is valid."""
     try:
         text.encode("utf-8")
     except UnicodeEncodeError as err:
-        raise DataFileError(path, f"field '{where}': not valid Unicode (lone surrogate {text[err.start]!r} at position {err.start})") from None
+        return int(err.start)
+    return None
+
+
+def _check_text(text: str, where: str, path: Path) -> None:
+    """DataFileError unless ``text`` is valid Unicode (encodable as UTF-8: no lone surrogate)."""
+    pos = lone_surrogate(text)
+    if pos is not None:
+        raise DataFileError(path, f"field '{where}': not valid Unicode (lone surrogate {text[pos]!r} at position {pos})")
 
 
 def _check_ball_state(state: Any, where: str, path: Path) -> None:

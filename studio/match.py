@@ -44,7 +44,7 @@ from typing import Any
 
 from studio.errors import DataFileError, InvalidInputError
 from studio.jsonlog import append_jsonl
-from studio.library import LibraryEntry, ServeLibrary
+from studio.library import LibraryEntry, ServeLibrary, lone_surrogate
 
 MATCH_LOG = "matches.jsonl"
 """File name of the match log inside a library folder."""
@@ -142,18 +142,9 @@ def point_from_json(doc: Any, *, where: str) -> Point:
     if opponent is not None and not isinstance(opponent, str):
         raise InvalidInputError(f"{where}: field 'opponent' must be a string or absent")
     for key in ("serve", "opponent"):
-        if isinstance(doc.get(key), str) and not _unicode(doc[key]):
+        if isinstance(doc.get(key), str) and lone_surrogate(doc[key]) is not None:
             raise InvalidInputError(f"{where}: field {key!r} is not valid Unicode (lone surrogate)")
     return Point(time=t, server=doc["server"], serve=serve, winner=doc["winner"], ace=doc["ace"], opponent=opponent)
-
-
-def _unicode(text: str) -> bool:
-    """True when ``text`` is valid Unicode (UTF-8 encodable: no lone surrogate)."""
-    try:
-        text.encode("utf-8")
-    except UnicodeEncodeError:
-        return False
-    return True
 
 
 def load_points(path: str | Path) -> list[Point]:
