@@ -159,6 +159,10 @@ class StudioApp:
                 self.download_button = gui.add_button("Download JSON")
                 self.upload_button = gui.add_upload_button("Upload JSON", mime_type="application/json")
                 self.export_button = gui.add_button("Export to library")
+                self.export_beyond = gui.add_checkbox(
+                    "Export beyond effort limits", initial_value=False,
+                    hint="Raise each exceeded joint's effort limit to the plan's peak for this export (recorded in the entry)",
+                )  # fmt: skip
                 self.library_pick = gui.add_dropdown("Library serve", options=["(none)"], initial_value="(none)")
         with tabs.add_tab("Checks"):
             self.status_md = gui.add_markdown("_evaluating..._")
@@ -451,13 +455,16 @@ class StudioApp:
         if evaluation is None:
             self._message("**Export failed:** nothing evaluated yet")
             return
+        raised = efforts.raised_to_peaks() if efforts is not None and self.export_beyond.value else None
+        limits = {n: float(lim) for n, lim in zip(raised.names, raised.limit) if n in raised.raised} if raised is not None else {}
         try:
             entry = ServeLibrary(self.library_dir).add(
                 evaluation, provenance={"kind": "hand-designed", "tool": "studio"}, task=self.task.value, preparation=self.context.preparation(evaluation.serve.side),
-                efforts=efforts,
+                effort_limits=limits,
             )
             verdict = "legal" if evaluation.legal else f"NOT legal ({evaluation.reason})"
-            self._message(f"Exported `{evaluation.serve.name}` ({verdict}) to `{self.library_dir}` as `{entry.id}`.")
+            beyond = f" Effort limits raised on purpose: {', '.join(f'{n} {v:g}' for n, v in limits.items())}." if limits else ""
+            self._message(f"Exported `{evaluation.serve.name}` ({verdict}) to `{self.library_dir}` as `{entry.id}`.{beyond}")
             self._refresh_library()
         except (StudioError, OSError) as err:
             self._message(f"**Export failed:** {err}")
@@ -489,7 +496,7 @@ class StudioApp:
             self.scene.show(frame)
             status, checks, metrics = report_markdown(evaluation)
             self.status_md.content = status + f"\n\n_evaluated in {1000 * result.seconds:.0f} ms_"
-            self.checks_md.content = checks
+            self.checks_md.content = checks + (f"\n\n{efforts.headline()} (table in Metrics)" if efforts is not None else "")
             self.metrics_md.content = metrics + (f"\n\n{efforts.markdown()}" if efforts is not None else "")
             pb = frame.playback
             if pb is not None and len(pb.t):

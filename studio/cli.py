@@ -29,12 +29,27 @@ def _cmd_app(args: argparse.Namespace) -> int:
     return 0
 
 
+EFFORT_LIMIT_HELP = (
+    "raise (or set) a joint's effort limit for this export on purpose, JOINT=VALUE [N | N m], repeatable, e.g. gantry_x=4700: "
+    "a plan beyond the robot's limits (robots/serve_robot.toml, stated estimates) is refused otherwise; the entry records the raised limits"
+)
+
+
+def _effort_limits(args: argparse.Namespace) -> dict[str, float]:
+    """The ``--effort-limit JOINT=VALUE`` options as {joint: limit} (InvalidInputError if bad)."""
+    from studio.efforts import parse_limits
+    from studio.robot_description import load_spec
+
+    return parse_limits(args.effort_limit, load_spec().joint_names)
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
 
     from dataclasses import replace
 
     from studio.errors import InvalidInputError
+    from studio.efforts import EffortLimitError
     from studio.evaluate import EvaluationContext, effort_report, evaluate_motion, evaluate_robust, evaluate_serve, report_markdown
     from studio.serve import LimitScale, load_serve
 
@@ -43,6 +58,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             "--mujoco cannot be combined with --tosses > 1: the MuJoCo rollout tosses the ball from the cup as the motion "
             "predicts, it cannot replay recorded tosses (use --mujoco alone, or --tosses without it)"
         )
+    effort_limits = _effort_limits(args)
     serve = load_serve(args.serve)
     if args.limit_scale is not None:
         serve = replace(serve, limit_scale=LimitScale.parse(args.limit_scale))
@@ -57,8 +73,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         evaluation = evaluate_serve(serve, context, task=task, mujoco=args.mujoco)
         payload = evaluation.to_json()
     efforts = effort_report(evaluation.motion, context.robot)
+    efforts = efforts.with_limits(effort_limits) if efforts is not None else None
     payload["efforts"] = efforts.to_json() if efforts is not None else None
     exported_note = ""
+    refused = None
     if args.export:
         from studio.library import ServeLibrary
 
@@ -76,10 +94,17 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                 f" (the mean toss path's evaluation: {'legal' if exported.legal else 'not legal'}, reward {exported.reward.total:+.3f}; "
                 "the robust result is in its provenance)"
             )
-        entry = ServeLibrary(args.export).add(exported, provenance=provenance, task=task, preparation=context.preparation(serve.side), efforts=efforts)
-        payload["exported"] = {
-            "library": str(args.export), "id": entry.id, "toss": "mean", "legal": exported.legal, "reward": exported.reward.total,
-        }  # fmt: skip
+        try:
+            entry = ServeLibrary(args.export).add(
+                exported, provenance=provenance, task=task, preparation=context.preparation(serve.side), effort_limits=effort_limits,
+            )  # fmt: skip
+        except EffortLimitError as err:  # the report goes out first, then the refusal
+            refused = str(err)
+            payload["exported"] = {"library": str(args.export), "refused": refused}
+        else:
+            payload["exported"] = {
+                "library": str(args.export), "id": entry.id, "toss": "mean", "legal": exported.legal, "reward": exported.reward.total,
+            }  # fmt: skip
     if args.json:
         print(json.dumps(payload, indent=2))
     else:
@@ -92,9 +117,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             print("\n" + efforts.markdown())
         if args.tosses > 1:
             print(f"\nover {args.tosses} recorded tosses: legal fraction {payload['legal_fraction']:.2f}, mean reward {payload['reward']:+.3f}, legal: {payload['legal']}")
-        if args.export:
+        if refused is not None:
+            print(f"\nnot exported to {args.export}: {refused}")
+        elif args.export:
             print(f"\nexported to {args.export} as {payload['exported']['id']}{exported_note}")
-    return 0 if payload["legal"] else 1
+    return 0 if payload["legal"] and refused is None else 1
 
 
 def _cmd_optimize(args: argparse.Namespace) -> int:
@@ -102,7 +129,7 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     import time
     from pathlib import Path
 
-    from studio.evaluate import EvaluationContext, effort_report, evaluate_serve
+    from studio.evaluate import EvaluationContext, evaluate_serve
     from dataclasses import replace
 
     from studio.errors import InvalidInputError, StudioError
@@ -111,6 +138,7 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
 
     if args.robustify < 0:
         raise InvalidInputError(f"--robustify must be a number of candidates >= 0, got {args.robustify}")
+    effort_limits = _effort_limits(args)
     seeds = [load_serve(p) for p in args.seeds]
     limit_scale = LimitScale.parse(args.limit_scale) if args.limit_scale is not None else None
     if limit_scale is None and not args.resume and seeds:  # the seeds' own scale
@@ -174,7 +202,7 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
         evaluation = evaluate_serve(best, context, task=args.task)
         entry = ServeLibrary(args.export).add(
             evaluation, provenance={"kind": "hebo", "run": str(run_dir), "seed": args.seed}, task=args.task, preparation=context.preparation(best.side),
-            efforts=effort_report(evaluation.motion, context.robot),
+            effort_limits=effort_limits,
         )  # fmt: skip
         print(f"exported to {args.export} as {entry.id}")
     return 0 if s.legal else 1
@@ -433,6 +461,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     p.add_argument("--export", default=None, metavar="DIR", help="write the plan to the serve library folder DIR (with --tosses: its mean-toss evaluation, the robust result in the provenance)")
     p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default: the serve file's limit_scale, else 1)")
+    p.add_argument("--effort-limit", action="append", default=[], metavar="JOINT=VALUE", help=EFFORT_LIMIT_HELP)
     handlers["evaluate"] = _cmd_evaluate
 
     p = sub.add_parser("robustify", help="search around a serve for one legal on more recorded tosses, keeping its spin")
@@ -462,6 +491,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--export", default=None, metavar="DIR", help="export the chosen serve to this serve library")
     p.add_argument("--sequential", action="store_true", help="suggest each batch after the previous one is evaluated (default with 2+ workers: the next batch is suggested while the workers evaluate)")
     p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default: the seed serves' own scale, else 1; on --resume: the run's own)")
+    p.add_argument("--effort-limit", action="append", default=[], metavar="JOINT=VALUE", help=EFFORT_LIMIT_HELP)
     p.add_argument("--robustify", type=int, default=0, metavar="N", help=ROBUSTIFY_HELP)
     handlers["optimize"] = _cmd_optimize
 

@@ -30,6 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from studio import constants as C
+from studio.efforts import EffortReport, effort_report  # noqa: F401  (re-exported: studio.evaluate.effort_report)
 from studio.ball import (
     DEFAULT_FLIGHT,
     BallState,
@@ -275,63 +276,6 @@ class ServeMotion:
             hold = np.repeat(np.asarray(self.u)[-1:], extra + 1, axis=0)
             X = np.concatenate([X, dynamics.simulate(hold, dt, X[-1])[1:]])
         return X
-
-
-@dataclass(frozen=True)
-class EffortReport:
-    """Peak joint forces/torques of a serve's whole exported motion (preparation, toss,
-    strike, return and the final hold: :func:`studio.planner.serve_arrays`): inverse
-    dynamics (:meth:`studio.robot.Robot.joint_efforts`) of the predicted joint trajectory
-    (exact predicted speeds), accelerations from the joint dynamics model
-    q'' = wn^2 (u - q) - 2 zeta wn q'. The paper raised its acceleration and jerk limits
-    once measured torques showed headroom: this is the same check on the model, against
-    the robot's nominal efforts (stand-in values, not data-sheet figures)."""
-
-    names: tuple[str, ...]
-    """Joint names (8)."""
-    peak: npt.NDArray[np.float64]
-    """Largest |force/torque| per joint (8,) [N | N m]."""
-    at: npt.NDArray[np.float64]
-    """Time of each peak (8,) [s] on the exported clock (the library NPZ's ``t``: 0 at the
-    start of the preparation; the toss clock when the motion has no preparation)."""
-    limit: npt.NDArray[np.float64]
-    """Nominal effort per joint (8,) [N | N m]."""
-
-    @property
-    def usage(self) -> npt.NDArray[np.float64]:
-        """peak / limit (8,) [-]."""
-        return self.peak / self.limit
-
-    @property
-    def worst(self) -> tuple[str, float]:
-        """(joint, usage) of the most used joint."""
-        k = int(np.argmax(self.usage))
-        return self.names[k], float(self.usage[k])
-
-    def to_json(self) -> dict[str, Any]:
-        return {"names": list(self.names), "peak": _vec(self.peak), "at": _vec(self.at), "limit": _vec(self.limit), "usage": _vec(self.usage)}
-
-    def markdown(self) -> str:
-        name, use = self.worst
-        rows = "\n".join(f"| {n} | {p:.1f} | {lim:g} | {100 * p / lim:.0f} % | {t:.3f} |" for n, p, lim, t in zip(self.names, self.peak, self.limit, self.at))
-        return (
-            f"**Joint efforts** (inverse dynamics, nominal limits): most used {name} at {100 * use:.0f} %\n\n"
-            "| joint | peak [N, N m] | nominal | usage | at [s, exported clock] |\n| --- | --- | --- | --- | --- |\n" + rows
-        )
-
-
-def effort_report(motion: ServeMotion, robot: Robot) -> EffortReport | None:
-    """The peak joint efforts of ``motion`` as exported: its preparation, toss, strike,
-    return and final hold, times on the exported clock (None without a motion)."""
-    if motion.t is None or motion.u is None or motion.q is None or len(motion.t) < 3:
-        return None
-    from studio.cup_hold import joint_accelerations
-    from studio.planner import serve_arrays
-
-    arr = serve_arrays(motion.t, motion.u, motion.q, motion.qd, robot.dynamics, preparation=motion.preparation)
-    tau = np.abs(robot.joint_efforts(arr.q, arr.qd, joint_accelerations(robot, arr.u, arr.q, arr.qd)))
-    k = np.argmax(tau, axis=0)
-    return EffortReport(robot.joint_names, tau[k, np.arange(tau.shape[1])], arr.t[k], robot.effort_limits)
 
 
 @dataclass(frozen=True)

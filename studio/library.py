@@ -8,7 +8,7 @@ Format (``DESIGN.md``, schema ``serve-studio/library@1``):
   second bounce, ``legal``, ``reward`` and its ``terms``, ``provenance`` (hand-designed
   or optimizer run and seed), ``robot`` (model name and SHA-256 of the robot source and
   URDF, the serve's ``limit_scale`` and the effective derivative ``limits`` it was
-  planned with, and when given the peak joint ``efforts`` of its motion), ``created`` (UTC ISO time), ``usage`` counters and the
+  planned with, and the peak joint ``efforts`` of its motion with the limits checked), ``created`` (UTC ISO time), ``usage`` counters and the
   ``arrays`` file name;
 - ``<id>.npz`` per serve (plain arrays, no pickled objects): ``t`` (M,) [s] and ``u``
   (M, 8) joint commands of preparation + toss + strike + return + final hold at 1 kHz
@@ -60,6 +60,7 @@ from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -105,14 +106,6 @@ def robot_identity(limit_scale: LimitScale | None = None) -> dict[str, Any]:
     out["limit_scale"] = scale.to_json()
     out["limits"] = {order: [float(getattr(j, order)) * getattr(scale, order) for j in joints] for order in ("velocity", "acceleration", "jerk")}
     return out
-
-
-def _shipped_dynamics() -> Any:
-    """The joint model (:class:`studio.robot.JointDynamics`) of the shipped robot TOML."""
-    from studio.robot import JointDynamics
-
-    joints = load_spec().actuated_joints
-    return JointDynamics(tuple(j.name for j in joints), np.array([j.wn for j in joints]), np.array([j.zeta for j in joints]))
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -373,7 +366,10 @@ class ServeLibrary:
                 return e
         raise InvalidInputError(f"serve {serve_id!r} not found in library {self.folder}")
 
-    def add(self, evaluation: Any, *, provenance: dict[str, Any] | None = None, task: str | None = None, preparation: Any = None, efforts: Any = None) -> LibraryEntry:
+    def add(
+        self, evaluation: Any, *, provenance: dict[str, Any] | None = None, task: str | None = None, preparation: Any = None,
+        effort_limits: Mapping[str, float] | None = None,
+    ) -> LibraryEntry:
         """Export an evaluated serve (:class:`studio.evaluate.Evaluation`) with its plan.
 
         ``preparation``: the :class:`studio.planner.PreparationPhase` before the toss
@@ -383,8 +379,11 @@ class ServeLibrary:
         :func:`studio.planner.serve_arrays`), the toss starting at ``t_toss`` (stored in the
         NPZ and the index). Without any, the arrays start with the toss (``t_toss`` = 0).
 
-        ``efforts``: the motion's :class:`studio.evaluate.EffortReport`; its peak force/torque
-        per joint, time and ratio to the nominal effort go into the entry's ``robot.efforts``.
+        The peak joint efforts of the arrays written (:mod:`studio.efforts`) go into the
+        entry's ``robot.efforts``; a plan beyond a joint's effort limit is refused
+        (:class:`studio.efforts.EffortLimitError`, nothing written) unless ``effort_limits``
+        (joint name -> limit [N | N m], set on purpose by the user) covers it, which the
+        entry records (``robot.efforts.raised``).
 
         Raises InvalidInputError when the evaluation has no motion plan to export,
         DataFileError (nothing written) when the library's index cannot be read,
@@ -394,7 +393,9 @@ class ServeLibrary:
         if ev.t is None or ev.u is None or ev.q is None:
             raise InvalidInputError(f"serve {ev.serve.name!r} has no motion plan to export ({ev.status}: {ev.reason})")
         self.entries()  # a corrupt library stops the export before any work (checked again under the lock)
+        from studio.efforts import arrays_effort_report
         from studio.planner import SETTLE, serve_arrays  # casadi & pinocchio: not at import (dashboard)
+        from studio.robot import load_robot
 
         motion = getattr(ev, "motion", None)
         preparation = preparation if preparation is not None else getattr(motion, "preparation", None)
@@ -402,7 +403,10 @@ class ServeLibrary:
             pu, pq = np.asarray(preparation.u, dtype=float), np.asarray(preparation.q, dtype=float)
             if pu.ndim != 2 or pu.shape[1:] != (8,) or pq.shape != pu.shape:
                 raise InvalidInputError(f"preparation arrays must be (P, 8), got {pu.shape} and {pq.shape}")
-        arr = serve_arrays(ev.t, ev.u, ev.q, getattr(motion, "qd", None), _shipped_dynamics(), preparation=preparation)
+        robot = load_robot()  # its own pinocchio data: exports may run beside an evaluation thread
+        arr = serve_arrays(ev.t, ev.u, ev.q, getattr(motion, "qd", None), robot.dynamics, preparation=preparation)
+        efforts = arrays_effort_report(robot, arr).with_limits(effort_limits or {})
+        efforts.require_within()
         t, u, q, t_toss = arr.t, arr.u, arr.q, arr.t_toss
         slug = re.sub(r"[^a-z0-9]+", "-", ev.serve.name.lower()).strip("-")[:40] or "serve"
         sid = f"{slug}-{uuid.uuid4().hex[:8]}"
@@ -433,7 +437,7 @@ class ServeLibrary:
             "reward": float(ev.reward.total),
             "terms": ev.reward.as_dict(),
             "provenance": provenance or {"kind": "hand-designed"},
-            "robot": {**robot_identity(ev.serve.limit_scale), **({"efforts": efforts.to_json()} if efforts is not None else {})},
+            "robot": {**robot_identity(ev.serve.limit_scale), "efforts": efforts.to_json()},
             "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "usage": {"used": 0, "won": 0, "lost": 0, "aces": 0},
             "arrays": f"{sid}.npz",

@@ -135,11 +135,11 @@ class TrainedServe:
     row: dict[str, float]
     """Ball state at the second bounce (keys of :data:`COLUMNS`) when legal."""
     entry_id: str | None
-    """Library id (legal serves only)."""
+    """Library id (legal serves within the robot's effort limits only)."""
     seconds: float
     """Wall time of the run [s] (0 when it was finished earlier)."""
     reason: str = ""
-    """Why it is not legal, or ``already trained``."""
+    """Why it is not legal or not exported (effort limits), or ``already trained``."""
 
 
 def _row(ev: Any, task: str) -> dict[str, float]:
@@ -193,7 +193,8 @@ def _ray_job(side: TossSide, seed: int, cfg: TrainConfig, run_json: str | None, 
 
 def _finish(index: int, run_dir: Path, seed: int, best: HandServe | None, cfg: TrainConfig, context: Any, library: Any, seconds: float) -> TrainedServe:
     """Evaluate the chosen serve on the mean toss, export it if legal, mark the run done."""
-    from studio.evaluate import effort_report, evaluate_serve
+    from studio.efforts import EffortLimitError
+    from studio.evaluate import evaluate_serve
 
     if best is None:
         return TrainedServe(index, run_dir, False, -math.inf, {}, None, seconds, "nothing evaluated")
@@ -203,13 +204,15 @@ def _finish(index: int, run_dir: Path, seed: int, best: HandServe | None, cfg: T
         best = robustify_chosen(best, run_dir, evaluations=cfg.robustify, task=cfg.task, context=context).serve
     ev = evaluate_serve(best, context, task=cfg.task)
     row = _row(ev, cfg.task) if ev.legal else {}
-    entry_id = library.add(
-        ev, provenance={"kind": "hebo", "run": str(run_dir), "seed": seed}, task=cfg.task, preparation=context.preparation(best.side),
-        efforts=effort_report(ev.motion, context.robot),
-    ).id if ev.legal else None  # fmt: skip
-    done = {"id": entry_id, "legal": bool(ev.legal), "reward": float(ev.reward.total), "row": row, "reason": ev.reason, "serve": best.to_json()}
+    entry_id, reason = None, "" if ev.legal else ev.reason
+    if ev.legal:
+        try:
+            entry_id = library.add(ev, provenance={"kind": "hebo", "run": str(run_dir), "seed": seed}, task=cfg.task, preparation=context.preparation(best.side)).id
+        except EffortLimitError as err:  # legal but beyond the robot's efforts: kept in the run, not exported
+            reason = f"not exported: {err}"
+    done = {"id": entry_id, "legal": bool(ev.legal), "reward": float(ev.reward.total), "row": row, "reason": reason or ev.reason, "serve": best.to_json()}
     (run_dir / "exported.json").write_text(json.dumps(done, allow_nan=False) if math.isfinite(done["reward"]) else json.dumps({**done, "reward": None}))
-    return TrainedServe(index, run_dir, bool(ev.legal), float(ev.reward.total), row, entry_id, seconds, "" if ev.legal else ev.reason)
+    return TrainedServe(index, run_dir, bool(ev.legal), float(ev.reward.total), row, entry_id, seconds, reason)
 
 
 def _check_scale(run_dir: Path, cfg: TrainConfig) -> None:

@@ -47,7 +47,8 @@ def app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[StudioApp]:
 
 def test_metrics_tab_shows_the_joint_efforts(app: StudioApp) -> None:
     assert app.worker.wait_idle(120) and app.last is not None
-    assert "**Joint efforts**" in app.metrics_md.content and "| a2 |" in app.metrics_md.content
+    assert "**Joint efforts" in app.metrics_md.content and "| a2 |" in app.metrics_md.content
+    assert "**Joint efforts" in app.checks_md.content and "| a2 |" not in app.checks_md.content  # the verdict line only
 
 
 def test_non_finite_control_is_rejected_not_evaluated(app: StudioApp) -> None:
@@ -123,6 +124,33 @@ def test_optimize_from_seeds_runs_and_loads_the_best(app: StudioApp) -> None:
     assert app.opt_progress.value == pytest.approx(100.0)
     assert app.worker.wait_idle(120)
     assert app.last is not None and app.last.serve.name.endswith("optimized")
+
+
+def test_export_beyond_the_effort_limits_needs_the_checkbox(app: StudioApp) -> None:
+    """backspin_left (limits x1.5) exceeds gantry_x: Checks says so, Export refuses; with
+    "Export beyond effort limits" it exports and the entry records the raised limit."""
+    from studio.library import ServeLibrary
+    from studio.serve import load_serve
+
+    before = len(ServeLibrary(app.library_dir).entries()) if (app.library_dir / "index.json").exists() else 0
+    assert app.worker.wait_idle(120) and app.last is not None
+    previous = app.last.serve
+    app.load(load_serve(Path(__file__).resolve().parent.parent / "examples" / "serves" / "backspin_left.json"))
+    assert app.worker.wait_idle(120) and app.last is not None and app.last.serve.name.startswith("backspin")
+    assert "EXCEED" in app.checks_md.content and "gantry_x" in app.checks_md.content
+    app._export()
+    assert "Export failed" in app.message_md.content and "gantry_x" in app.message_md.content
+    assert (len(ServeLibrary(app.library_dir).entries()) if (app.library_dir / "index.json").exists() else 0) == before
+    app.export_beyond.value = True
+    try:
+        app._export()
+    finally:
+        app.export_beyond.value = False
+    assert "Exported" in app.message_md.content and "raised on purpose: gantry_x" in app.message_md.content
+    newest = ServeLibrary(app.library_dir).entries()[-1]
+    assert newest.data["robot"]["efforts"]["raised"] == ["gantry_x"] and newest.data["robot"]["efforts"]["within"]
+    app.load(previous)  # the module's app goes on with its own serve
+    assert app.worker.wait_idle(120)
 
 
 def test_export_then_load_library_serve(app: StudioApp) -> None:

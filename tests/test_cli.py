@@ -249,3 +249,21 @@ def test_calibrate_prints_one_table_of_every_model(capsys: pytest.CaptureFixture
     assert float(row.group(3)) < 1.25 and float(row.group(4)) < 40.0  # the refit, 2-fold CV
     rally = re.search(r"rally shot->bounce \(\d+\)\s+landing error median \[mm\]\s+([\d.]+)\s+([\d.]+)", out)
     assert rally and float(rally.group(2)) < 110.0 < float(rally.group(1))  # after < target < before
+
+
+def test_export_beyond_the_effort_limits_is_refused_unless_raised(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """backspin_left (limits x1.5) needs more gantry_x force than the robot's limit: the
+    report is printed, the export refused with the flag that would raise the limit; with
+    the flag the entry is written and records the raised limit."""
+    path = str(EXAMPLES / "backspin_left.json")
+    assert main(["evaluate", path, "--export", str(tmp_path / "lib")]) == 1
+    text = capsys.readouterr().out
+    assert "Joint efforts EXCEED the limits" in text and "not exported" in text and "--effort-limit gantry_x=" in text
+    assert not (tmp_path / "lib" / "index.json").exists()
+    assert main(["evaluate", path, "--json", "--export", str(tmp_path / "lib"), "--effort-limit", "gantry_x=5200"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["efforts"]["raised"] == ["gantry_x"] and out["efforts"]["within"] is True
+    (entry,) = ServeLibrary(tmp_path / "lib").entries()
+    assert entry.id == out["exported"]["id"] and entry.data["robot"]["efforts"]["limit"][0] == 5200.0
+    assert main(["evaluate", path, "--effort-limit", "gantry_x=-1"]) == 2
+    assert "gantry_x: must be a finite number > 0" in capsys.readouterr().err

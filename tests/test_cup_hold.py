@@ -141,7 +141,7 @@ def _limits_only_preparation(robot: Robot, u_toss0: FloatArray) -> FloatArray:
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[str, dict, dict]]:
     """Every example serve exported to a library: (name, index entry, NPZ arrays)."""
-    from studio.evaluate import EvaluationContext, evaluate_serve
+    from studio.evaluate import EvaluationContext, effort_report, evaluate_serve
     from studio.library import INDEX_NAME, ServeLibrary
     from studio.serve import load_serve
 
@@ -149,7 +149,9 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[str, dict, 
     context = EvaluationContext.default()
     for path in EXAMPLES:
         serve = load_serve(path)
-        ServeLibrary(folder).add(evaluate_serve(serve, context, task=serve.task or "topspin_velocity"))
+        ev = evaluate_serve(serve, context, task=serve.task or "topspin_velocity")
+        efforts = effort_report(ev.motion, context.robot).raised_to_peaks()  # the x1.5 / x2 examples exceed gantry_x (test_efforts)
+        ServeLibrary(folder).add(ev, effort_limits={n: float(v) for n, v in zip(efforts.names, efforts.limit) if n in efforts.raised})
     out = []
     for entry in json.loads((folder / INDEX_NAME).read_text())["serves"]:
         with np.load(folder / entry["arrays"], allow_pickle=False) as npz:

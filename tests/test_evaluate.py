@@ -175,7 +175,7 @@ def test_effort_report_of_a_planned_serve(context: EvaluationContext) -> None:
     # the peaks are at least the static gravity loads of the motion's own configurations
     static = np.abs(context.robot.joint_efforts(motion.q[::50], np.zeros_like(motion.q[::50]), np.zeros_like(motion.q[::50]))).max(axis=0)
     assert np.all(rep.peak >= static - 1.0)
-    assert set(rep.to_json()) == {"names", "peak", "at", "limit", "usage"} and "Joint efforts" in rep.markdown()
+    assert set(rep.to_json()) == {"names", "peak", "at", "limit", "usage", "within", "exceeded", "raised"} and "Joint efforts" in rep.markdown()
     unplanned = plan_motion(HandServe(name="early", side="right", params=ServeParams(tau=0.40, velocity=(3.0, 0, 0), yaw=math.pi / 2, roll=0.0)), context)
     assert effort_report(unplanned, context.robot) is None
 

@@ -91,7 +91,7 @@ def test_exported_efforts_are_on_the_npz_clock_and_cover_the_preparation(tmp_pat
 
     robot = load_robot()
     rep = effort_report(evaluation.motion, robot)
-    entry = ServeLibrary(tmp_path / "lib").add(evaluation, efforts=rep)
+    entry = ServeLibrary(tmp_path / "lib").add(evaluation)
     with np.load(tmp_path / "lib" / entry.data["arrays"], allow_pickle=False) as npz:
         t, u, q = npz["t"], npz["u"], npz["q"]
     qd = np.gradient(q, t, axis=0)
@@ -189,17 +189,20 @@ def test_export_records_the_limit_scale_and_the_limits_it_needs(tmp_path: Path) 
         lib.entries()
 
 
-def test_export_records_the_peak_joint_efforts_when_given(tmp_path: Path) -> None:
+def test_export_records_the_peak_joint_efforts(tmp_path: Path) -> None:
     from studio.evaluate import effort_report
 
     context = EvaluationContext.default()
     ev = evaluate_serve(load_serve(EXAMPLE), context)
     lib = ServeLibrary(tmp_path / "lib")
     rep = effort_report(ev.motion, context.robot)
-    entry = lib.add(ev, efforts=rep)
+    entry = lib.add(ev)
     stored = lib.get(entry.id).data["robot"]["efforts"]
-    assert stored == rep.to_json() and len(stored["usage"]) == 8
-    assert "efforts" not in lib.add(ev).data["robot"]  # optional
+    expected = rep.to_json()
+    assert set(stored) == set(expected) and stored["names"] == expected["names"] and len(stored["usage"]) == 8
+    for key in ("peak", "at", "limit", "usage"):
+        assert stored[key] == pytest.approx(expected[key], rel=1e-9), key
+    assert stored["within"] is True and stored["exceeded"] == [] and stored["raised"] == []
 
 
 # --- a library that cannot be read is never rewritten --------------------------------------------
