@@ -1,4 +1,4 @@
-"""Benchmark of the ball simulator (:func:`studio.ball.simulate`).
+"""Benchmark of the ball simulator (:func:`studio.physics.ball.simulate`).
 
 Prints a table of simulations per second for typical serve flights, without and with a
 moving racket, and as the last line one JSON object with the figures.
@@ -17,7 +17,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.special import erf
 
-from studio import ball as B
+from studio.physics import ball as B
 
 
 def serve_racket(tilt_deg: float = 20.0, velocity: tuple[float, float, float] = (4.0, 0.0, -1.0)) -> tuple[B.BallState, B.SampledRacketMotion]:

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from studio.evaluate import EvaluationContext, evaluate_robust, evaluate_serve
-from studio.serve import load_serve
+from studio.serve.evaluate import EvaluationContext, evaluate_robust, evaluate_serve
+from studio.serve.params import load_serve
 
 EXAMPLES = sorted((Path(__file__).resolve().parent.parent / "examples" / "serves").glob("*.json"))
 

@@ -1,9 +1,9 @@
-"""Benchmark of the strike motion planner (:mod:`studio.planner`) and the collision check.
+"""Benchmark of the strike motion planner (:mod:`studio.planning.planner`) and the collision check.
 
 Targets (fixed seed, documented):
 
-* Start: both default tosses (right, left) of :func:`studio.toss.load_default_toss_model`;
-  the planner takes over at ``t_lift + SWITCH_DELAY`` (``studio.evaluate``, 0.06 s) from
+* Start: both default tosses (right, left) of :func:`studio.toss.model.load_default_toss_model`;
+  the planner takes over at ``t_lift + SWITCH_DELAY`` (``studio.serve.evaluate``, 0.06 s) from
   the toss's command state and predicted joint state.
 * Contact times on the toss clock where the mean ball path is 0-0.5 m above the table
   (it is behind the end line, x ~ -1.65 m); tau_f - tau uniform in [0.4, 1.2] s (the
@@ -46,11 +46,11 @@ import time
 
 import numpy as np
 
-from studio.evaluate import SWITCH_DELAY  # [s] planner take-over after the lift, as in evaluations
-from studio.planner import StrikePlanner, StrikeStart, StrikeTarget
-from studio.robot import load_robot
-from studio.serve import racket_normal
-from studio.toss import load_default_toss_model
+from studio.serve.evaluate import SWITCH_DELAY  # [s] planner take-over after the lift, as in evaluations
+from studio.planning.planner import StrikePlanner, StrikeStart, StrikeTarget
+from studio.robot.model import load_robot
+from studio.serve.params import racket_normal
+from studio.toss.model import load_default_toss_model
 
 
 def ik(robot, q0, p, n, iters=60):  # type: ignore[no-untyped-def]
@@ -153,7 +153,7 @@ def main() -> None:
     print(f"targets: {len(reach)} reachable (certified, {tries} draws, {time.perf_counter() - t0:.1f} s), "
           f"{len(rand)} random")
 
-    from studio.collision import CollisionChecker
+    from studio.robot.collision import CollisionChecker
 
     checker = CollisionChecker(robot)
 

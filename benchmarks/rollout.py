@@ -1,4 +1,4 @@
-"""Benchmark of studio.rollout: rollouts per second on two serve-like scenarios.
+"""Benchmark of studio.sim.rollout: rollouts per second on two serve-like scenarios.
 
 Scenarios (1 kHz command grid, the shipped robot, default ball models):
 
@@ -26,10 +26,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from studio import ball as B
-from studio import toss as T
-from studio.robot import load_robot
-from studio.rollout import RolloutOptions, RolloutResult, build_scene, rollout
+from studio.physics import ball as B
+from studio.toss import model as T
+from studio.robot.model import load_robot
+from studio.sim.rollout import RolloutOptions, RolloutResult, build_scene, rollout
 
 DT = 1e-3
 

@@ -21,8 +21,8 @@ from tempfile import TemporaryDirectory
 import numpy as np
 import viser
 
-from studio.app import StudioApp
-from studio.evaluate import EvaluationContext
+from studio.ui.app import StudioApp
+from studio.serve.evaluate import EvaluationContext
 
 
 def _free_port() -> int:

@@ -28,9 +28,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from studio.optimizer import EvaluatorPool, HeboConfig, bounds_for_toss, optimize_serve  # noqa: E402
-from studio.serve import LimitScale, load_serve  # noqa: E402
-from studio.toss import load_default_toss_model  # noqa: E402
+from studio.optimize.optimizer import EvaluatorPool, HeboConfig, bounds_for_toss, optimize_serve  # noqa: E402
+from studio.serve.params import LimitScale, load_serve  # noqa: E402
+from studio.toss.model import load_default_toss_model  # noqa: E402
 
 Trace = list[tuple[int, float, float]]
 """(evaluations done, seconds since start, best reward so far)."""
@@ -128,7 +128,7 @@ def main() -> None:
                 ("final serve: legal fraction", f"{s.legal_fraction:.2f}" if s else "-"),
             ]
             if res.best is not None:  # what the chosen serve does on the mean toss (after the timing)
-                from studio.evaluate import EvaluationContext, evaluate_serve
+                from studio.serve.evaluate import EvaluationContext, evaluate_serve
 
                 ev = evaluate_serve(res.best, EvaluationContext.default(), task=args.task)  # as train exports
                 sb = ev.metrics.second_bounce if ev.metrics is not None else None

@@ -2,7 +2,7 @@
 
 The same launch (a serve just after the strike: 0.3 m above the table behind the
 server's end line, 5.1 m/s forward and down) with four spins of 200 rad/s is simulated
-with :func:`studio.ball.simulate` until the second table bounce, and drawn in a side view
+with :func:`studio.physics.ball.simulate` until the second table bounce, and drawn in a side view
 (x-z) and a top view (x-y) with the table, net and bounce points. A table of the bounce
 points and of the spin after the second bounce (paper's velocity-aligned components) is
 printed.
@@ -23,8 +23,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.patches import Rectangle
 
-from studio import ball as B
-from studio.court import DEFAULT_COURT
+from studio.physics import ball as B
+from studio.physics.court import DEFAULT_COURT
 
 SPIN = 200.0
 """Spin magnitude of the examples [rad/s]."""

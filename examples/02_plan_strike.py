@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from studio.collision import CollisionChecker
-from studio.evaluate import SWITCH_DELAY, strike_target
-from studio.planner import Plan, StrikePlanner, StrikeTarget, start_from_toss
-from studio.robot import load_robot
-from studio.serve import load_serve
-from studio.toss import load_default_toss_model
+from studio.robot.collision import CollisionChecker
+from studio.serve.evaluate import SWITCH_DELAY, strike_target
+from studio.planning.planner import Plan, StrikePlanner, StrikeTarget, start_from_toss
+from studio.robot.model import load_robot
+from studio.serve.params import load_serve
+from studio.toss.model import load_default_toss_model
 
 DEFAULT_SERVE = Path(__file__).resolve().parent / "serves" / "topspin_right.json"
 SPEED_SCALES = (0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0)

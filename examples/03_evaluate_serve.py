@@ -15,8 +15,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from studio.evaluate import EvaluationContext, evaluate_robust, evaluate_serve, report_markdown
-from studio.serve import load_serve
+from studio.serve.evaluate import EvaluationContext, evaluate_robust, evaluate_serve, report_markdown
+from studio.serve.params import load_serve
 
 DEFAULT_SERVE = Path(__file__).resolve().parent / "serves" / "backspin_left.json"
 ROBUST_TOSSES = 10

@@ -19,9 +19,9 @@ import argparse
 import shutil
 from pathlib import Path
 
-from studio.evaluate import EvaluationContext
-from studio.optimizer import OptimizationResult, optimize_serve
-from studio.serve import ServeParams, load_serve
+from studio.serve.evaluate import EvaluationContext
+from studio.optimize.optimizer import OptimizationResult, optimize_serve
+from studio.serve.params import ServeParams, load_serve
 
 SEED_SERVE = Path(__file__).resolve().parent / "serves" / "backspin_right.json"
 

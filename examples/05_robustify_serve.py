@@ -2,7 +2,7 @@
 
 A serve designed on the mean toss path meets a ball a centimetre off on a real toss. This
 example scores an example serve on the 20 recorded tosses, then searches around it with
-CMA-ES (:func:`studio.robust.robustify_serve`) for a serve legal on more of them whose
+CMA-ES (:func:`studio.optimize.robust.robustify_serve`) for a serve legal on more of them whose
 spin at the net keeps 90 % of each component, logging every candidate to
 ``RUN_DIR/robustify.jsonl``. The search is stopped half-way and resumed: the resumed
 search replays the log and goes on exactly as an uninterrupted one would.
@@ -19,9 +19,9 @@ import shutil
 import threading
 from pathlib import Path
 
-from studio.evaluate import EvaluationContext
-from studio.robust import RobustScore, robustify_serve
-from studio.serve import load_serve
+from studio.serve.evaluate import EvaluationContext
+from studio.optimize.robust import RobustScore, robustify_serve
+from studio.serve.params import load_serve
 
 DEFAULT_SERVE = Path(__file__).resolve().parent / "serves" / "sidespin_left.json"
 

@@ -16,12 +16,12 @@ significant digits. In words: each axis can hold the maximum payload anywhere an
 accelerate it at its own acceleration limit, with a quarter in reserve. The serve robot
 carries a 0.3 kg racket instead, which is where the headroom for the paper's "dynamic
 limit expansion" comes from; a plan that still exceeds a limit is flagged and refused by
-export unless the user raises that joint's limit (``studio.efforts``).
+export unless the user raises that joint's limit (``studio.serve.efforts``).
 
     .venv/bin/python experiments/effort_limits.py [--samples 20000] [--seed 0]
 
 Prints the table and the values to put into the TOML (then
-``python -m studio.robot_description`` regenerates the URDF).
+``python -m studio.robot.description`` regenerates the URDF).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import numpy as np
 import pinocchio as pin
 
 from studio.paths import robots_dir
-from studio.robot_description import load_spec
+from studio.robot.description import load_spec
 
 PAYLOAD_KG = 6.0
 """Maximum payload of the KR 6 R900 sixx [kg] (Spez KR AGILUS sixx)."""

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from studio.evaluate import EvaluationContext, evaluate_serve
+from studio.serve.evaluate import EvaluationContext, evaluate_serve
 
-from studio.serve import GENE_NAMES, HandServe, LimitScale, ServeParams, save_serve
+from studio.serve.params import GENE_NAMES, HandServe, LimitScale, ServeParams, save_serve
 
 
 def run_folders(paths: list[Path]) -> list[Path]:

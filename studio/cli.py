@@ -23,7 +23,7 @@ LIMIT_SCALE_HELP = (
 
 
 def _cmd_app(args: argparse.Namespace) -> int:
-    from studio.app import run_app
+    from studio.ui.app import run_app
 
     run_app(host=args.host, port=args.port, serves_dir=args.serves, library_dir=args.library)
     return 0
@@ -37,8 +37,8 @@ EFFORT_LIMIT_HELP = (
 
 def _effort_limits(args: argparse.Namespace) -> dict[str, float]:
     """The ``--effort-limit JOINT=VALUE`` options as {joint: limit} (InvalidInputError if bad)."""
-    from studio.efforts import parse_limits
-    from studio.robot_description import load_spec
+    from studio.serve.efforts import parse_limits
+    from studio.robot.description import load_spec
 
     return parse_limits(args.effort_limit, load_spec().joint_names)
 
@@ -49,9 +49,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from studio.errors import InvalidInputError
-    from studio.efforts import EffortLimitError
-    from studio.evaluate import EvaluationContext, effort_report, evaluate_motion, evaluate_robust, evaluate_serve, report_markdown
-    from studio.serve import LimitScale, load_serve
+    from studio.serve.efforts import EffortLimitError
+    from studio.serve.evaluate import EvaluationContext, effort_report, evaluate_motion, evaluate_robust, evaluate_serve, report_markdown
+    from studio.serve.params import LimitScale, load_serve
 
     if args.mujoco and args.tosses > 1:
         raise InvalidInputError(
@@ -78,7 +78,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     exported_note = ""
     refused = None
     if args.export:
-        from studio.library import ServeLibrary
+        from studio.library.store import ServeLibrary
 
         exported = evaluation
         provenance: dict[str, object] = {"kind": "hand-designed", "file": str(args.serve)}
@@ -129,12 +129,12 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     import time
     from pathlib import Path
 
-    from studio.evaluate import EvaluationContext, evaluate_serve
+    from studio.serve.evaluate import EvaluationContext, evaluate_serve
     from dataclasses import replace
 
     from studio.errors import InvalidInputError, StudioError
-    from studio.optimizer import optimize_serve
-    from studio.serve import LimitScale, load_serve
+    from studio.optimize.optimizer import optimize_serve
+    from studio.serve.params import LimitScale, load_serve
 
     if args.robustify < 0:
         raise InvalidInputError(f"--robustify must be a number of candidates >= 0, got {args.robustify}")
@@ -184,19 +184,19 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     print(f"chosen serve: mean reward {s.mean_reward:+.3f} on {len(s.rewards)} fresh tosses, legal on {100 * s.legal_fraction:.0f} % ({'legal' if s.legal else 'not legal'})")
     best = replace(result.best, name=args.name or f"{args.task} {args.side} seed {args.seed}", task=args.task, notes=f"HEBO run {run_dir}, seed {args.seed}")
     if args.robustify:
-        from studio.robust import robustify_chosen
+        from studio.optimize.robust import robustify_chosen
 
         print(f"robustify: {args.robustify} candidates around the chosen serve ...", flush=True)
         rob = robustify_chosen(best, run_dir, evaluations=args.robustify, task=args.task)
         print(rob.summary())
         best = rob.serve
     out = run_dir / "best_serve.json"
-    from studio.serve import save_serve
+    from studio.serve.params import save_serve
 
     save_serve(out, best)
     print(f"best serve written to {out}")
     if args.export:
-        from studio.library import ServeLibrary
+        from studio.library.store import ServeLibrary
 
         context = EvaluationContext.default()
         evaluation = evaluate_serve(best, context, task=args.task)
@@ -209,12 +209,12 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
 
 
 def _cmd_robustify(args: argparse.Namespace) -> int:
-    """Search around a serve for one legal on more recorded tosses (studio.robust)."""
+    """Search around a serve for one legal on more recorded tosses (studio.optimize.robust)."""
     import time
     from pathlib import Path
 
-    from studio.robust import RobustScore, robustify_serve
-    from studio.serve import load_serve, save_serve
+    from studio.optimize.robust import RobustScore, robustify_serve
+    from studio.serve.params import load_serve, save_serve
 
     serve = load_serve(args.serve)
     run_dir = Path(args.run_dir) if args.run_dir else None
@@ -248,8 +248,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     export each legal chosen serve to the library, and print a Table II-like summary."""
     from pathlib import Path
 
-    from studio.serve import LimitScale, load_serve
-    from studio.training import TrainConfig, TrainedServe, finished_runs, summary_table, train_serves
+    from studio.serve.params import LimitScale, load_serve
+    from studio.optimize.training import TrainConfig, TrainedServe, finished_runs, summary_table, train_serves
 
     cfg = TrainConfig(
         task=args.task, count=args.count, side=args.side, iterations=args.iterations, population=args.population, tosses=args.tosses,
@@ -286,22 +286,22 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_dashboard(args: argparse.Namespace) -> int:
-    from studio.dashboard import run_dashboard
+    from studio.ui.dashboard import run_dashboard
 
     run_dashboard(library_dir=args.library, host=args.host, port=args.port, studio_url=args.studio_url, runs_dir=args.runs)
     return 0
 
 
 def _cmd_toss(args: argparse.Namespace) -> int:
-    from studio.toss import toss_report
+    from studio.toss.model import toss_report
 
     print(toss_report(side=args.side, csv_path=args.csv))
     return 0
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from studio import ball_calibration as BC
-    from studio import flight_calibration as FC
+    from studio.physics import ball_calibration as BC
+    from studio.physics import flight_calibration as FC
     from studio.errors import DataFileError, InvalidInputError
 
     folds = 5 if args.folds is None else args.folds
@@ -326,7 +326,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     if args.write:
         BC.write_models_json(racket)
         FC.write_flight_json(flight)
-        print(f"\nwrote {BC.RACKET_MODELS_JSON} and {FC.FLIGHT_MODEL_JSON} (the defaults in studio/ball.py follow the flight record by hand)")
+        print(f"\nwrote {BC.RACKET_MODELS_JSON} and {FC.FLIGHT_MODEL_JSON} (the defaults in studio/physics/ball.py follow the flight record by hand)")
     return 0
 
 
@@ -335,8 +335,8 @@ def _cmd_library(args: argparse.Namespace) -> int:
 
 
 def _library_list(args: argparse.Namespace) -> int:
-    from studio.library import ServeLibrary
-    from studio.selection import serve_cluster, usage_count
+    from studio.library.store import ServeLibrary
+    from studio.library.selection import serve_cluster, usage_count
 
     entries = ServeLibrary(args.dir).entries()
     print(f"{len(entries)} serves in {args.dir}")
@@ -355,8 +355,8 @@ def _library_list(args: argparse.Namespace) -> int:
 def _library_show(args: argparse.Namespace) -> int:
     import json
 
-    from studio.library import ServeLibrary
-    from studio.selection import serve_cluster
+    from studio.library.store import ServeLibrary
+    from studio.library.selection import serve_cluster
 
     entry = ServeLibrary(args.dir).get(args.id)
     print(f"cluster: {serve_cluster(entry)}")
@@ -366,8 +366,8 @@ def _library_show(args: argparse.Namespace) -> int:
 
 def _library_validate(args: argparse.Namespace) -> int:
     from studio.errors import DataFileError
-    from studio.library import ServeLibrary
-    from studio.match import MATCH_LOG, load_points
+    from studio.library.store import ServeLibrary
+    from studio.library.match import MATCH_LOG, load_points
 
     lib = ServeLibrary(args.dir)
     try:
@@ -385,9 +385,9 @@ def _library_validate(args: argparse.Namespace) -> int:
 
 
 def _library_select(args: argparse.Namespace) -> int:
-    from studio.library import ServeLibrary
-    from studio.match import next_serve
-    from studio.selection import serve_cluster, usage_count
+    from studio.library.store import ServeLibrary
+    from studio.library.match import next_serve
+    from studio.library.selection import serve_cluster, usage_count
 
     entry = next_serve(ServeLibrary(args.dir), args.previous, strict=True)
     print(f"{entry.id}\t{entry.data['name']}\t{serve_cluster(entry)}\tused {usage_count(entry)}")
@@ -396,8 +396,8 @@ def _library_select(args: argparse.Namespace) -> int:
 
 def _library_record(args: argparse.Namespace) -> int:
     from studio.errors import InvalidInputError
-    from studio.library import ServeLibrary
-    from studio.match import record_point
+    from studio.library.store import ServeLibrary
+    from studio.library.match import record_point
 
     if args.server == "robot" and args.serve is None:  # the flags named (record_point checks the same)
         raise InvalidInputError("--serve ID is required when the robot serves")
@@ -409,8 +409,8 @@ def _library_record(args: argparse.Namespace) -> int:
 
 
 def _library_stats(args: argparse.Namespace) -> int:
-    from studio.library import ServeLibrary
-    from studio.match import MATCH_LOG, load_points, stats_report
+    from studio.library.store import ServeLibrary
+    from studio.library.match import MATCH_LOG, load_points, stats_report
 
     lib = ServeLibrary(args.dir)
     print(stats_report(lib.entries(), load_points(lib.folder / MATCH_LOG), min_uses=args.min_uses))
@@ -418,8 +418,8 @@ def _library_stats(args: argparse.Namespace) -> int:
 
 
 def _library_prune(args: argparse.Namespace) -> int:
-    from studio.library import ServeLibrary
-    from studio.match import MATCH_LOG, PRUNED_DIR, load_points, prune, prune_candidates, serve_records
+    from studio.library.store import ServeLibrary
+    from studio.library.match import MATCH_LOG, PRUNED_DIR, load_points, prune, prune_candidates, serve_records
 
     lib = ServeLibrary(args.dir)
     entries = lib.entries()
@@ -582,10 +582,10 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
 def single_thread_pools(args: argparse.Namespace) -> bool:
     """For ``optimize``/``train`` that evaluate in this process (``--workers 1``): one
     BLAS/OpenMP thread, set in the environment before numpy loads (unless the user set
-    them; measurements: :mod:`studio.threads`). Returns True when it set something."""
+    them; measurements: :mod:`studio.optimize.threads`). Returns True when it set something."""
     if args.command not in ("optimize", "train") or getattr(args, "workers", 2) != 1 or getattr(args, "ray", None):
         return False
-    from studio.threads import single_thread_env  # numpy-free
+    from studio.optimize.threads import single_thread_env  # numpy-free
 
     return single_thread_env(keep_user_settings=True)
 

@@ -6,7 +6,7 @@ surface, +X points towards the receiver, +Z up. The robot serves from the -X end
 Everything numeric that is a property of the world (not a tuning knob of a model)
 lives here, so that physics, MuJoCo, the collision checker and the 3D scene share it.
 Calibrated model parameters (drag, lift, bounce) live with their models in
-:mod:`studio.ball`, with their own sources.
+:mod:`studio.physics.ball`, with their own sources.
 """
 
 from __future__ import annotations

@@ -23,3 +23,19 @@ def robots_dir() -> Path:
     raise FileNotFoundError(
         f"robot descriptions not found: looked in {PACKAGE_DIR.parent / 'robots'} and {PACKAGE_DIR / '_robots'}"
     )
+
+
+def example_serves_dir() -> Path:
+    """Folder of the example serve files (``examples/serves/`` in a checkout; packed as
+    ``studio/_example_serves`` in a wheel)."""
+    for candidate in (PACKAGE_DIR.parent / "examples" / "serves", PACKAGE_DIR / "_example_serves"):
+        if candidate.is_dir():
+            return candidate
+    raise FileNotFoundError(
+        f"example serves not found: looked in {PACKAGE_DIR.parent / 'examples' / 'serves'} and {PACKAGE_DIR / '_example_serves'}"
+    )
+
+
+SHARED_DATA_DIR = PACKAGE_DIR.parent.parent / "shared" / "data"
+"""The project's shared data sets beside a checkout (``../shared/data``: match data,
+robot serve contacts); not shipped."""

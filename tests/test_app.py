@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 import viser
 
-from studio.app import StudioApp, inside, list_serves, safe_name
+from studio.ui.app import StudioApp, inside, list_serves, safe_name
 from studio.errors import InvalidInputError
-from studio.evaluate import EvaluationContext
+from studio.serve.evaluate import EvaluationContext
 
 
 def _free_port() -> int:
@@ -66,7 +66,7 @@ def test_non_finite_control_is_rejected_not_evaluated(app: StudioApp) -> None:
 def test_joint_limit_controls_set_the_serves_limit_scale(app: StudioApp) -> None:
     from dataclasses import replace
 
-    from studio.serve import LimitScale
+    from studio.serve.params import LimitScale
 
     app._suspend = True
     app.limit_accel.value = math.nan
@@ -129,8 +129,8 @@ def test_optimize_from_seeds_runs_and_loads_the_best(app: StudioApp) -> None:
 def test_export_beyond_the_effort_limits_needs_the_checkbox(app: StudioApp) -> None:
     """backspin_left (limits x1.5) exceeds gantry_x: Checks says so, Export refuses; with
     "Export beyond effort limits" it exports and the entry records the raised limit."""
-    from studio.library import ServeLibrary
-    from studio.serve import load_serve
+    from studio.library.store import ServeLibrary
+    from studio.serve.params import load_serve
 
     before = len(ServeLibrary(app.library_dir).entries()) if (app.library_dir / "index.json").exists() else 0
     assert app.worker.wait_idle(120) and app.last is not None
@@ -154,7 +154,7 @@ def test_export_beyond_the_effort_limits_needs_the_checkbox(app: StudioApp) -> N
 
 
 def test_export_then_load_library_serve(app: StudioApp) -> None:
-    from studio.library import ServeLibrary
+    from studio.library.store import ServeLibrary
 
     assert app.worker.wait_idle(120)
     app._export()
@@ -174,7 +174,7 @@ def test_export_then_load_library_serve(app: StudioApp) -> None:
 
 
 def test_open_request_from_the_dashboard_loads_the_serve_once(app: StudioApp) -> None:
-    from studio.library import OPEN_REQUEST_NAME, ServeLibrary, request_open
+    from studio.library.store import OPEN_REQUEST_NAME, ServeLibrary, request_open
 
     app._export()  # make sure the library holds a serve
     entries = ServeLibrary(app.library_dir).entries()
@@ -203,7 +203,7 @@ def test_open_request_from_the_dashboard_loads_the_serve_once(app: StudioApp) ->
 
 
 def test_dashboard_open_in_studio_reaches_the_studio(app: StudioApp) -> None:
-    from studio.dashboard import LibraryDashboard
+    from studio.ui.dashboard import LibraryDashboard
 
     app._export()
     dash = LibraryDashboard(app.library_dir, studio_url="http://127.0.0.1:8080")
@@ -215,11 +215,11 @@ def test_dashboard_open_in_studio_reaches_the_studio(app: StudioApp) -> None:
 
 
 def test_match_tab_selects_records_and_shows_statistics(app: StudioApp) -> None:
-    from studio.evaluate import evaluate_serve
-    from studio.library import ServeLibrary
-    from studio.match import MATCH_LOG, load_points
-    from studio.selection import serve_cluster
-    from studio.serve import load_serve
+    from studio.serve.evaluate import evaluate_serve
+    from studio.library.store import ServeLibrary
+    from studio.library.match import MATCH_LOG, load_points
+    from studio.library.selection import serve_cluster
+    from studio.serve.params import load_serve
 
     lib = ServeLibrary(app.library_dir)
     examples = Path(__file__).resolve().parent.parent / "examples" / "serves"
@@ -267,7 +267,7 @@ def _optimize_and_wait(app: StudioApp) -> None:
 
 
 def test_an_earlier_run_is_listed_and_resumed_without_repeating_evaluations(app: StudioApp) -> None:
-    from studio.app import NEW_RUN
+    from studio.ui.app import NEW_RUN
 
     app.opt_iterations.value = 1
     app.opt_population.value = 2
@@ -309,9 +309,9 @@ def test_mujoco_rollout_checkbox_shows_the_rollouts_verdict(app: StudioApp) -> N
     """Ticking "MuJoCo rollout" evaluates the serve with the rollout (it used to fail:
     "rollout: X covers ... samples, t_end = ... needs ..."); a recorded toss cannot be
     replayed by it, which the studio says instead of mislabelling the rollout's toss."""
-    from studio.app import EXAMPLES_DIR
-    from studio.evaluate import evaluate_serve
-    from studio.serve import load_serve
+    from studio.ui.app import EXAMPLES_DIR
+    from studio.serve.evaluate import evaluate_serve
+    from studio.serve.params import load_serve
 
     def settle(what: str) -> None:
         deadline = time.monotonic() + 120

@@ -38,8 +38,8 @@ def _wait(predicate, timeout: float = 60.0, what: str = "condition") -> None:  #
 def studio(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[object, str, Path]]:
     import viser
 
-    from studio.app import StudioApp
-    from studio.evaluate import EvaluationContext
+    from studio.ui.app import StudioApp
+    from studio.serve.evaluate import EvaluationContext
 
     port = _free_port()
     serves = tmp_path_factory.mktemp("serves")
@@ -109,7 +109,7 @@ def test_illegal_serve_is_flagged(studio, page) -> None:  # type: ignore[no-unty
 
 
 def test_save_seed_writes_a_valid_serve_file(studio, page) -> None:  # type: ignore[no-untyped-def]
-    from studio.serve import load_serve
+    from studio.serve.params import load_serve
 
     app, _, serves = studio
     page.get_by_role("tab", name="Serve").click()
@@ -120,7 +120,7 @@ def test_save_seed_writes_a_valid_serve_file(studio, page) -> None:  # type: ign
 
 
 def test_export_puts_the_serve_in_the_library(studio, page) -> None:  # type: ignore[no-untyped-def]
-    from studio.library import ServeLibrary
+    from studio.library.store import ServeLibrary
 
     app, _, serves = studio
     page.get_by_role("tab", name="Serve").click()
@@ -135,7 +135,7 @@ def test_export_puts_the_serve_in_the_library(studio, page) -> None:  # type: ig
 
 
 def test_dashboard_open_in_studio_loads_the_serve_in_the_page(studio, page) -> None:  # type: ignore[no-untyped-def]
-    from studio.dashboard import LibraryDashboard
+    from studio.ui.dashboard import LibraryDashboard
 
     app, url, serves = studio
     page.get_by_role("tab", name="Serve").click()
@@ -154,11 +154,11 @@ def test_dashboard_open_in_studio_loads_the_serve_in_the_page(studio, page) -> N
 
 
 def test_match_tab_serves_and_records_a_point(studio, page) -> None:  # type: ignore[no-untyped-def]
-    from studio.match import MATCH_LOG, load_points
+    from studio.library.match import MATCH_LOG, load_points
 
-    from studio.evaluate import evaluate_serve
-    from studio.library import ServeLibrary
-    from studio.serve import load_serve
+    from studio.serve.evaluate import evaluate_serve
+    from studio.library.store import ServeLibrary
+    from studio.serve.params import load_serve
 
     app, _, serves = studio
     example = Path(__file__).resolve().parent.parent / "examples" / "serves" / "topspin_right.json"
@@ -178,7 +178,7 @@ def test_match_tab_serves_and_records_a_point(studio, page) -> None:  # type: ig
 def test_mujoco_rollout_checkbox_evaluates_with_the_rollout(studio, page) -> None:  # type: ignore[no-untyped-def]
     """Ticking "MuJoCo rollout" re-evaluates the serve with the MuJoCo rollout and shows its
     verdict (it used to fail with "rollout: X covers ... samples, t_end = ... needs ...")."""
-    from studio.serve import load_serve
+    from studio.serve.params import load_serve
 
     app, _, _ = studio
     example = Path(__file__).resolve().parent.parent / "examples" / "serves" / "topspin_right.json"

@@ -10,8 +10,8 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
-from studio import ball as B
-from studio import ball_calibration as BC
+from studio.physics import ball as B
+from studio.physics import ball_calibration as BC
 from studio import constants as C
 from studio.errors import DataFileError, InvalidInputError
 
@@ -359,7 +359,7 @@ def test_bad_inputs_rejected(tmp_path: Path) -> None:
 def test_relative_rotation_vectors_match_scipy_including_half_turns() -> None:
     from scipy.spatial.transform import Rotation
 
-    from studio.ball import _relative_rotvecs
+    from studio.physics.ball import _relative_rotvecs
 
     rng = np.random.default_rng(3)
     big = Rotation.random(300, random_state=1).as_matrix()  # arbitrary increments, some near pi

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from studio import ball as B
-from studio import ball_calibration as BC
+from studio.physics import ball as B
+from studio.physics import ball_calibration as BC
 from studio.errors import DataFileError
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from studio.cli import main
-from studio.library import ServeLibrary
+from studio.library.store import ServeLibrary
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples" / "serves"
 
@@ -104,7 +104,7 @@ def test_in_process_training_gets_single_thread_pools(monkeypatch: pytest.Monkey
     import argparse
 
     from studio.cli import single_thread_pools
-    from studio.threads import THREAD_VARS
+    from studio.optimize.threads import THREAD_VARS
 
     for var in THREAD_VARS:
         monkeypatch.delenv(var, raising=False)
@@ -146,8 +146,8 @@ EXAMPLE_FILES = sorted(EXAMPLES.glob("*.json"))
 @pytest.fixture(scope="module")
 def analytic() -> dict[str, dict]:  # type: ignore[type-arg]
     """The analytic verdict of every example serve (one shared context)."""
-    from studio.evaluate import EvaluationContext, evaluate_serve
-    from studio.serve import load_serve
+    from studio.serve.evaluate import EvaluationContext, evaluate_serve
+    from studio.serve.params import load_serve
 
     context = EvaluationContext.default()
     out = {}
@@ -186,8 +186,8 @@ def test_robust_export_stores_the_mean_toss_evaluation(capsys: pytest.CaptureFix
     """evaluate --tosses N --export: the library gets the plan with the mean toss's ball
     path and verdict (as optimize/train export), never one sampled toss's evaluation
     under the serve's name; the robust result is recorded beside it."""
-    from studio.evaluate import EvaluationContext, evaluate_serve
-    from studio.serve import load_serve
+    from studio.serve.evaluate import EvaluationContext, evaluate_serve
+    from studio.serve.params import load_serve
 
     path = EXAMPLES / "sidespin_right.json"
     code = main(["evaluate", str(path), "--json", "--tosses", "4", "--legal-fraction", "0.25", "--export", str(tmp_path / "lib")])
@@ -238,7 +238,7 @@ def test_calibrate_refuses_bad_input_before_any_fit(capsys: pytest.CaptureFixtur
 
 def test_calibrate_prints_one_table_of_every_model(capsys: pytest.CaptureFixture[str]) -> None:
     """The shipped data and the shared match file (skipped where ../shared is absent)."""
-    from studio.flight_calibration import DEFAULT_MATCH_CSV
+    from studio.physics.flight_calibration import DEFAULT_MATCH_CSV
 
     if not DEFAULT_MATCH_CSV.is_file():
         pytest.skip(f"match data not found at {DEFAULT_MATCH_CSV} (not shipped: ../shared/data/ace_match/)")

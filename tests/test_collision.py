@@ -1,14 +1,14 @@
-"""Collision checker (studio.collision): robot vs itself, table, net, posts, legs, floor."""
+"""Collision checker (studio.robot.collision): robot vs itself, table, net, posts, legs, floor."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from studio.collision import CollisionChecker
+from studio.robot.collision import CollisionChecker
 from studio.errors import InvalidInputError
-from studio.planner import StrikePlanner, StrikeStart, StrikeTarget
-from studio.robot import load_robot
+from studio.planning.planner import StrikePlanner, StrikeStart, StrikeTarget
+from studio.robot.model import load_robot
 
 
 @pytest.fixture(scope="module")
@@ -106,8 +106,8 @@ def test_fast_check_equals_exhaustive_on_planned_and_perturbed_serves(robot) -> 
     import dataclasses
     from pathlib import Path
 
-    from studio.evaluate import EvaluationContext, plan_motion
-    from studio.serve import load_serve
+    from studio.serve.evaluate import EvaluationContext, plan_motion
+    from studio.serve.params import load_serve
 
     ctx = EvaluationContext.default()
     checker = ctx.collision

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from studio import constants as C
-from studio.court import DEFAULT_COURT, Court
+from studio.physics.court import DEFAULT_COURT, Court
 
 
 def test_law_dimensions() -> None:

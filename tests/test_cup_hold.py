@@ -1,7 +1,7 @@
 """Ball in the cup: the holding cone from the cup geometry, measured in a native MuJoCo
 model of the cup, and every exported example serve replayed in it.
 
-The MuJoCo model here is the test's own (not :mod:`studio.rollout`'s): the cup's plate and
+The MuJoCo model here is the test's own (not :mod:`studio.sim.rollout`'s): the cup's plate and
 wall blocks built from the robot TOML's ``[cup]`` numbers on a heavy body whose pose and
 velocity are written from the exported motion before every step (kinematic), the ball a
 free body, frictionless contacts (the cone's conservative case). The exported motion is
@@ -20,10 +20,10 @@ import numpy.typing as npt
 import pinocchio as pin
 import pytest
 
-from studio.cup_hold import CUP_SAFETY_FACTOR, CupGrip, check_cup_hold
+from studio.robot.cup_hold import CUP_SAFETY_FACTOR, CupGrip, check_cup_hold
 from studio.errors import InvalidInputError
-from studio.robot import Robot, load_robot
-from studio.robot_description import BALL_CUP_FRAME, load_spec
+from studio.robot.model import Robot, load_robot
+from studio.robot.description import BALL_CUP_FRAME, load_spec
 
 EXAMPLES = sorted((Path(__file__).resolve().parent.parent / "examples" / "serves").glob("*.json"))
 DT = 1e-3
@@ -116,7 +116,7 @@ def _replay(robot: Robot, q: FloatArray, n: int, sub: int = 4) -> FloatArray:
 def _ratio_from_positions(robot: Robot, q: FloatArray) -> tuple[FloatArray, FloatArray]:
     """|f_t| / f_n and f_n [m/s^2] at samples 1..N-2 from second differences of the FK cup
     positions: f = R^T (a + g e_z + k |v| v), k the ball's drag constant."""
-    from studio.ball import DEFAULT_FLIGHT
+    from studio.physics.ball import DEFAULT_FLIGHT
 
     P, R = _cup_poses(robot, q)
     v = (P[2:] - P[:-2]) / (2 * DT)
@@ -141,9 +141,9 @@ def _limits_only_preparation(robot: Robot, u_toss0: FloatArray) -> FloatArray:
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[str, dict, dict]]:
     """Every example serve exported to a library: (name, index entry, NPZ arrays)."""
-    from studio.evaluate import EvaluationContext, effort_report, evaluate_serve
-    from studio.library import INDEX_NAME, ServeLibrary
-    from studio.serve import load_serve
+    from studio.serve.evaluate import EvaluationContext, effort_report, evaluate_serve
+    from studio.library.store import INDEX_NAME, ServeLibrary
+    from studio.serve.params import load_serve
 
     folder = tmp_path_factory.mktemp("lib")
     context = EvaluationContext.default()
@@ -193,7 +193,7 @@ def test_a_static_tilt_gives_its_tangent(robot: Robot) -> None:
 
 
 def test_preparation_from_a_pose_tilted_beyond_the_cone_is_refused(robot: Robot) -> None:
-    from studio.planner import preparation_phase
+    from studio.planning.planner import preparation_phase
 
     tilted = robot.q_flat + np.array([0, 0, 0, 0, 0, 0, 0.8, 0])  # 46 deg: the ball cannot sit there
     with pytest.raises(InvalidInputError, match="does not stay in the cup"):
@@ -234,7 +234,7 @@ def test_mujoco_ball_stays_in_the_cup_through_preparation_and_toss(robot: Robot,
 def test_mujoco_throws_the_ball_out_with_the_former_preparation(robot: Robot) -> None:
     """Negative control: the quintic the joint limits alone allowed (0.331 s) breaks the cone
     (ratio ~2) and the same MuJoCo model loses the ball (the issue: it leaves at ~0.18 s)."""
-    from studio.toss import load_default_toss_model
+    from studio.toss.model import load_default_toss_model
 
     q = _limits_only_preparation(robot, load_default_toss_model("right", robot).primitive.u[0])
     ratio, _ = _ratio_from_positions(robot, q)

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from studio.dashboard import SCATTER_AXES, LibraryDashboard, build_dashboard, entry_cluster, filter_table, spin_cluster
-from studio.library import INDEX_NAME, ServeLibrary
-from studio.serve import serve_from_json
+from studio.ui.dashboard import SCATTER_AXES, LibraryDashboard, build_dashboard, entry_cluster, filter_table, spin_cluster
+from studio.library.store import INDEX_NAME, ServeLibrary
+from studio.serve.params import serve_from_json
 
 ROOT = Path(__file__).resolve().parent.parent
 SERVES = ROOT / "examples" / "serves"
@@ -28,8 +28,8 @@ NAMES = ("backspin_right", "topspin_right", "sidespin_right")
 @pytest.fixture(scope="module")
 def library(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A library of three evaluated example serves (right toss)."""
-    from studio.evaluate import EvaluationContext, evaluate_serve
-    from studio.serve import load_serve
+    from studio.serve.evaluate import EvaluationContext, evaluate_serve
+    from studio.serve.params import load_serve
 
     folder = tmp_path_factory.mktemp("library")
     context = EvaluationContext.default()
@@ -42,8 +42,8 @@ def library(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_limits_text() -> None:
-    from studio.dashboard import limits_text
-    from studio.serve import LimitScale
+    from studio.ui.dashboard import limits_text
+    from studio.serve.params import LimitScale
 
     assert limits_text(LimitScale()) == "1"
     assert limits_text(LimitScale(velocity=1.1, acceleration=1.5, jerk=1.5)) == "v 1.1, a 1.5, j 1.5"
@@ -223,7 +223,7 @@ def test_dashboard_in_a_browser(served: str) -> None:
 def test_match_statistics_from_the_log(library: Path, tmp_path: Path) -> None:
     import shutil
 
-    from studio.match import MATCH_LOG
+    from studio.library.match import MATCH_LOG
 
     folder = tmp_path / "lib"
     shutil.copytree(library, folder)
@@ -245,8 +245,8 @@ def test_match_statistics_from_the_log(library: Path, tmp_path: Path) -> None:
 def test_convergence_of_linked_runs_inside_the_runs_folder_only(library: Path, tmp_path: Path) -> None:
     import shutil
 
-    from studio.hebo_adapter import HeboConfig
-    from studio.optimizer import Outcome, optimize_serve
+    from studio.optimize.hebo_adapter import HeboConfig
+    from studio.optimize.optimizer import Outcome, optimize_serve
 
     def fake(serve, tosses, rng):  # type: ignore[no-untyped-def]
         r = -float(np.sum((serve.params.to_vector() - 0.5) ** 2)) / 100.0

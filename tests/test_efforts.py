@@ -14,12 +14,12 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from studio.efforts import EffortLimitError, EffortReport, parse_limits
+from studio.serve.efforts import EffortLimitError, EffortReport, parse_limits
 from studio.errors import InvalidInputError
-from studio.evaluate import EvaluationContext, effort_report, evaluate_serve
-from studio.library import INDEX_NAME, ServeLibrary
+from studio.serve.evaluate import EvaluationContext, effort_report, evaluate_serve
+from studio.library.store import INDEX_NAME, ServeLibrary
 from studio.paths import robots_dir
-from studio.serve import load_serve
+from studio.serve.params import load_serve
 
 SERVES = Path(__file__).resolve().parent.parent / "examples" / "serves"
 NAMES = ("gantry_x", "gantry_y", "a1", "a2", "a3", "a4", "a5", "a6")

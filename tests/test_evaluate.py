@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from studio.errors import InvalidInputError
-from studio.evaluate import EvaluationContext, evaluate_robust, evaluate_serve, report_markdown, scene_frame
-from studio.reward import PLANNER_FAILURE_PENALTY
-from studio.serve import HandServe, ServeParams, load_serve
+from studio.serve.evaluate import EvaluationContext, evaluate_robust, evaluate_serve, report_markdown
+from studio.ui.scene import scene_frame
+from studio.serve.reward import PLANNER_FAILURE_PENALTY
+from studio.serve.params import HandServe, ServeParams, load_serve
 
 EXAMPLES = sorted((Path(__file__).resolve().parent.parent / "examples" / "serves").glob("*.json"))
 
@@ -138,8 +139,8 @@ def test_dynamic_limit_expansion_plans_what_the_robots_limits_cannot(context: Ev
     plan keeps the expanded limits at 1 kHz and uses more than the robot's own."""
     from dataclasses import replace
 
-    from studio.evaluate import plan_motion
-    from studio.serve import LimitScale
+    from studio.serve.evaluate import plan_motion
+    from studio.serve.params import LimitScale
 
     x = [0.8769, 8.5431, -0.5962, 4.5459, 1.5701, -0.4698, 0.8962, 0.0693, 0.0629, -0.0056]
     serve = HandServe(name="fast", side="right", params=ServeParams.from_vector(x))
@@ -162,7 +163,7 @@ def test_dynamic_limit_expansion_plans_what_the_robots_limits_cannot(context: Ev
 
 
 def test_effort_report_of_a_planned_serve(context: EvaluationContext) -> None:
-    from studio.evaluate import effort_report, plan_motion
+    from studio.serve.evaluate import effort_report, plan_motion
 
     motion = plan_motion(load_serve(Path(__file__).resolve().parent.parent / "examples" / "serves" / "topspin_right.json"), context)
     rep = effort_report(motion, context.robot)
@@ -184,7 +185,7 @@ def test_mujoco_rollout_follows_the_ball_past_the_end_of_the_motion(context: Eva
     """Regression (issue: "rollout: X covers 1496 samples, t_end = 2.5224 needs 2524"):
     the ball flies on after the robot is back at rest, so the rollout needs the robot's
     states beyond the motion: the plan's own, then the joint model holding the last command."""
-    from studio.evaluate import FLIGHT_AFTER_CONTACT, plan_motion
+    from studio.serve.evaluate import FLIGHT_AFTER_CONTACT, plan_motion
 
     serve = load_serve(Path(__file__).resolve().parent.parent / "examples" / "serves" / "topspin_right.json")
     t_end = serve.params.tau + FLIGHT_AFTER_CONTACT

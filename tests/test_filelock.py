@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from studio.filelock import LOCK_NAME, LockTimeoutError, locked
+from studio.storage.filelock import LOCK_NAME, LockTimeoutError, locked
 
 ROOT = Path(__file__).resolve().parent.parent
 CLI = [sys.executable, "-c", "import sys; from studio.cli import main; sys.exit(main())"]
@@ -24,7 +24,7 @@ RAISED = ["--effort-limit", "gantry_x=6000"]  # the x1.5 / x2 examples need more
 def test_lock_excludes_other_processes_and_times_out_with_a_clear_message(tmp_path: Path) -> None:
     folder = tmp_path / "lib"
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from studio.filelock import locked\nwith locked(sys.argv[1]):\n    print('held', flush=True); time.sleep(30)", str(folder)],
+        [sys.executable, "-c", "import sys, time; from studio.storage.filelock import locked\nwith locked(sys.argv[1]):\n    print('held', flush=True); time.sleep(30)", str(folder)],
         stdout=subprocess.PIPE, text=True, cwd=ROOT,
     )  # fmt: skip
     try:

@@ -10,8 +10,8 @@ from typing import cast
 import numpy as np
 import pytest
 
-from studio import ball as B
-from studio import flight_calibration as F
+from studio.physics import ball as B
+from studio.physics import flight_calibration as F
 from studio.errors import DataFileError
 
 HEADER = "player_id,rally_id,type,timestamp,ball_pos,ball_vel_out,ball_spin_out\n"
@@ -112,7 +112,7 @@ def test_missing_file_column_and_empty_file(tmp_path: Path) -> None:
 
 
 def test_default_path_is_next_to_the_repository() -> None:
-    repo = Path(F.__file__).resolve().parents[1]
+    repo = Path(F.__file__).resolve().parents[2]
     assert F.DEFAULT_MATCH_CSV == repo.parent / "shared/data/ace_match/match_data_dev.csv"
 
 

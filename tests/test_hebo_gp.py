@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from studio.hebo_adapter import HeboAdapter, HeboConfig
-from studio.hebo_gp import FastGP
+from studio.optimize.hebo_adapter import HeboAdapter, HeboConfig
+from studio.optimize.hebo_gp import FastGP
 
 CONF = {"lr": 0.01, "noise_lb": 8e-4, "pred_likeli": False, "verbose": False}
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from studio.errors import DataFileError
-from studio.jsonlog import TORN_SUFFIX, append_jsonl, read_jsonl
+from studio.storage.jsonlog import TORN_SUFFIX, append_jsonl, read_jsonl
 
 
 def _parse(d: object) -> int:
@@ -64,7 +64,7 @@ def test_read_keeps_a_complete_unterminated_record_and_sets_a_torn_one_aside(tmp
     assert read_jsonl(path, _parse) == [0, 1]  # kept, and the newline repaired for the next append
     assert path.read_text() == '{"i": 0}\n{"i": 1}\n'
     path.write_text('{"i": 0}\n{"i": 1, "x')
-    with caplog.at_level("WARNING", logger="studio.jsonlog"):
+    with caplog.at_level("WARNING", logger="studio.storage.jsonlog"):
         assert read_jsonl(path, _parse) == [0]
     assert path.read_text() == '{"i": 0}\n'
     assert (tmp_path / ("log.jsonl" + TORN_SUFFIX)).read_text() == '{"i": 1, "x\n'  # not lost: set aside

@@ -1,4 +1,4 @@
-"""casadi forward kinematics (studio.kinematics_casadi) against pinocchio."""
+"""casadi forward kinematics (studio.planning.kinematics_casadi) against pinocchio."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pinocchio as pin
 import pytest
 
 from studio.errors import RobotModelError
-from studio.kinematics_casadi import build_kinematics
-from studio.robot import load_robot
+from studio.planning.kinematics_casadi import build_kinematics
+from studio.robot.model import load_robot
 
 
 @pytest.fixture(scope="module")

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from studio.errors import DataFileError, InvalidInputError
-from studio.evaluate import EvaluationContext, evaluate_serve
-from studio.library import INDEX_NAME, ServeLibrary
-from studio.serve import load_serve
+from studio.serve.evaluate import EvaluationContext, evaluate_serve
+from studio.library.store import INDEX_NAME, ServeLibrary
+from studio.serve.params import load_serve
 
 EXAMPLE = sorted((Path(__file__).resolve().parent.parent / "examples" / "serves").glob("topspin_right.json"))[0]
 
@@ -86,8 +86,8 @@ def test_exported_arrays_end_with_the_joints_at_rest(tmp_path: Path, evaluation)
 def test_exported_efforts_are_on_the_npz_clock_and_cover_the_preparation(tmp_path: Path, evaluation) -> None:  # type: ignore[no-untyped-def]
     """The effort report equals RNEA recomputed from the exported arrays (speeds by central
     differences of q, accelerations from the joint model), with peak times on the NPZ's t."""
-    from studio.evaluate import effort_report
-    from studio.robot import load_robot
+    from studio.serve.evaluate import effort_report
+    from studio.robot.model import load_robot
 
     robot = load_robot()
     rep = effort_report(evaluation.motion, robot)
@@ -148,7 +148,7 @@ def test_arrays_are_never_unpickled(tmp_path: Path, evaluation) -> None:  # type
 def test_serve_without_plan_cannot_be_exported(tmp_path: Path) -> None:
     import math
 
-    from studio.serve import HandServe, ServeParams
+    from studio.serve.params import HandServe, ServeParams
 
     early = HandServe(name="early", side="right", params=ServeParams(tau=0.4, velocity=(3.0, 0, 0), yaw=math.pi / 2, roll=0.0))
     ev = evaluate_serve(early, EvaluationContext.default())
@@ -160,8 +160,8 @@ def test_serve_without_plan_cannot_be_exported(tmp_path: Path) -> None:
 def test_export_records_the_limit_scale_and_the_limits_it_needs(tmp_path: Path) -> None:
     from dataclasses import replace
 
-    from studio.robot import load_robot
-    from studio.serve import LimitScale
+    from studio.robot.model import load_robot
+    from studio.serve.params import LimitScale
 
     context = EvaluationContext.default()
     scale = LimitScale(velocity=1.1, acceleration=1.5, jerk=1.5)
@@ -190,7 +190,7 @@ def test_export_records_the_limit_scale_and_the_limits_it_needs(tmp_path: Path) 
 
 
 def test_export_records_the_peak_joint_efforts(tmp_path: Path) -> None:
-    from studio.evaluate import effort_report
+    from studio.serve.evaluate import effort_report
 
     context = EvaluationContext.default()
     ev = evaluate_serve(load_serve(EXAMPLE), context)
@@ -222,7 +222,7 @@ def test_no_writer_rewrites_a_corrupt_index(tmp_path: Path, evaluation, what, mu
     import re
 
     from studio.cli import main
-    from studio.match import MATCH_LOG, prune, record_point, sync_usage
+    from studio.library.match import MATCH_LOG, prune, record_point, sync_usage
 
     lib = ServeLibrary(tmp_path / "lib")
     sid = lib.add(evaluation).id
@@ -282,7 +282,7 @@ def test_legacy_infinite_cup_ratio_is_read_and_kept(tmp_path: Path, evaluation) 
 
 
 def test_export_writes_arrays_first_and_removes_them_when_the_index_write_fails(tmp_path: Path, evaluation, monkeypatch: pytest.MonkeyPatch) -> None:  # type: ignore[no-untyped-def]
-    import studio.library as L
+    import studio.library.store as L
 
     lib = ServeLibrary(tmp_path)
     first = lib.add(evaluation)
@@ -314,7 +314,7 @@ def test_export_writes_arrays_first_and_removes_them_when_the_index_write_fails(
     ids=["5000-digit integer", "nested 100000 deep", "encoded lone surrogate"],
 )
 def test_unparsable_index_is_reported_and_kept(tmp_path: Path, raw: bytes, message: str) -> None:
-    from studio.match import record_point, sync_usage
+    from studio.library.match import record_point, sync_usage
 
     lib = ServeLibrary(tmp_path)
     lib.index_path.write_bytes(raw)

@@ -12,8 +12,8 @@ import pytest
 
 from studio.cli import main
 from studio.errors import DataFileError, InvalidInputError
-from studio.library import INDEX_NAME, LIBRARY_SCHEMA, ServeLibrary
-from studio.match import (
+from studio.library.store import INDEX_NAME, LIBRARY_SCHEMA, ServeLibrary
+from studio.library.match import (
     MATCH_LOG,
     PRUNED_DIR,
     Z95,
@@ -265,7 +265,7 @@ def test_cli_prune_and_validate_failures(tmp_path: Path, capsys: pytest.CaptureF
 
 
 def test_record_point_and_next_serve_continue_a_match_from_the_log(tmp_path: Path) -> None:
-    from studio.match import last_robot_serve, next_serve, record_point
+    from studio.library.match import last_robot_serve, next_serve, record_point
 
     lib = make_library(tmp_path / "lib", [("top", 250.0, 0.0), ("back", -200.0, 0.0), ("side", 0.0, 220.0)])
     first = next_serve(lib)  # empty log: least used, then highest reward
@@ -297,7 +297,7 @@ def test_record_point_and_next_serve_continue_a_match_from_the_log(tmp_path: Pat
 
 
 def test_record_repairs_a_missing_final_newline_and_refuses_a_torn_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from studio.match import record_point
+    from studio.library.match import record_point
 
     lib = make_library(tmp_path / "lib", [("top", 250.0, 0.0), ("back", -200.0, 0.0)])
     log = lib.folder / MATCH_LOG
@@ -323,7 +323,7 @@ def test_record_repairs_a_missing_final_newline_and_refuses_a_torn_line(tmp_path
 
 
 def test_a_point_with_a_lone_surrogate_is_refused(tmp_path: Path) -> None:
-    from studio.match import record_point
+    from studio.library.match import record_point
 
     lib = make_library(tmp_path / "lib", [("top", 250.0, 0.0)])
     with pytest.raises(InvalidInputError, match="'opponent' is not valid Unicode"):

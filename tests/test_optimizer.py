@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from studio.errors import InvalidInputError
-from studio.hebo_adapter import HeboAdapter, HeboConfig
-from studio.optimizer import Outcome, bounds_for_toss, optimize_serve
-from studio.serve import GENE_NAMES, GenomeBounds, HandServe, ServeParams
+from studio.optimize.hebo_adapter import HeboAdapter, HeboConfig
+from studio.optimize.optimizer import Outcome, bounds_for_toss, optimize_serve
+from studio.serve.params import GENE_NAMES, GenomeBounds, HandServe, ServeParams
 
 BOUNDS = GenomeBounds(tau=(0.65, 1.0))
 # cheap HEBO settings: GP from the 5th observation on, small NSGA-II
@@ -57,7 +57,7 @@ def read_log(run_dir: Path) -> list[dict]:
 
 
 def test_bounds_for_toss_spans_falling_ball_to_5cm_above_table() -> None:
-    from studio.toss import load_default_toss_model
+    from studio.toss.model import load_default_toss_model
 
     toss = load_default_toss_model("right")
     b = bounds_for_toss(toss)
@@ -221,8 +221,8 @@ def test_stop_event_stops_between_batches(tmp_path: Path) -> None:
 
 
 def test_real_evaluation_of_a_seed_in_process(tmp_path: Path) -> None:
-    from studio.evaluate import EvaluationContext
-    from studio.serve import load_serve
+    from studio.serve.evaluate import EvaluationContext
+    from studio.serve.params import load_serve
 
     ctx = EvaluationContext.default()
     seed = load_serve(Path(__file__).resolve().parents[1] / "examples" / "serves" / "topspin_right.json")
@@ -260,7 +260,7 @@ def test_hebo_prints_go_to_the_logger(capsys: pytest.CaptureFixture[str], caplog
 
 def test_run_history_reads_the_log_and_flags_corrupt_lines(tmp_path: Path) -> None:
     from studio.errors import DataFileError
-    from studio.optimizer import load_run_history
+    from studio.optimize.optimizer import load_run_history
 
     res = run(tmp_path / "r")
     h = load_run_history(tmp_path / "r")
@@ -367,7 +367,7 @@ def test_resumed_torn_overlapped_batch_knows_its_logged_part(tmp_path: Path, mon
 
 
 def test_limit_scale_reaches_every_candidate_is_logged_and_kept_on_resume(tmp_path: Path) -> None:
-    from studio.serve import LimitScale
+    from studio.serve.params import LimitScale
 
     scales: list[LimitScale] = []
     fake = FakeEvaluation()
@@ -399,7 +399,7 @@ def test_runs_logged_before_limit_scale_resume_with_the_robots_limits(tmp_path: 
 
 
 def test_list_runs_filters_summarizes_and_reports_unreadable_folders(tmp_path: Path) -> None:
-    from studio.optimizer import list_runs
+    from studio.optimize.optimizer import list_runs
 
     run(tmp_path / "a-run", iterations=1)
     run(tmp_path / "b-run", iterations=2, side="right", task="backspin")

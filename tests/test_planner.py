@@ -1,4 +1,4 @@
-"""Strike motion planner (studio.planner): constraints, tolerances, limits, continuity."""
+"""Strike motion planner (studio.planning.planner): constraints, tolerances, limits, continuity."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from studio.errors import InvalidInputError
-from studio.planner import (
+from studio.planning.planner import (
     StrikePlanner,
     StrikeStart,
     StrikeTarget,
     chain_transition,
 )
-from studio.robot import JointDynamics, load_robot
+from studio.robot.model import JointDynamics, load_robot
 
 DT = 1e-3
 
@@ -189,8 +189,8 @@ def test_nan_inputs_raise_naming_the_field(start) -> None:  # type: ignore[no-un
 
 
 def test_plan_serve_is_one_continuous_trajectory(robot, planner) -> None:  # type: ignore[no-untyped-def]
-    from studio.planner import plan_serve
-    from studio.toss import make_toss
+    from studio.planning.planner import plan_serve
+    from studio.toss.model import make_toss
 
     toss = make_toss(robot, "right")
     t_sw = toss.release.time + 0.02
@@ -219,7 +219,7 @@ def test_plan_serve_is_one_continuous_trajectory(robot, planner) -> None:  # typ
 
 
 def test_settle_hold_is_the_shortest_hold_to_rest(robot) -> None:  # type: ignore[no-untyped-def]
-    from studio.planner import SETTLE, SettleTolerance, settle_hold
+    from studio.planning.planner import SETTLE, SettleTolerance, settle_hold
 
     X0 = np.stack([robot.q_rest - 0.012, np.full(8, 0.4)], axis=1)  # the return's end: short and moving
     S = settle_hold(robot.q_rest, X0, robot.dynamics)
@@ -241,9 +241,9 @@ def test_settle_hold_is_the_shortest_hold_to_rest(robot) -> None:  # type: ignor
 
 
 def test_preparation_keeps_the_ball_in_the_cup_within_the_limits(robot) -> None:  # type: ignore[no-untyped-def]
-    from studio.cup_hold import CupGrip
-    from studio.planner import _cup_check, _held_quintic, preparation_phase
-    from studio.toss import load_default_toss_model
+    from studio.robot.cup_hold import CupGrip
+    from studio.planning.planner import _cup_check, _held_quintic, preparation_phase
+    from studio.toss.model import load_default_toss_model
 
     u0 = load_default_toss_model("right", robot).primitive.u[0]
     prep = preparation_phase(robot, u0)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from studio.errors import InvalidInputError
-from studio.reward import RewardWeights, reward, spin_scalars as spin_components, task_weights, velocity_frame
+from studio.serve.reward import RewardWeights, reward, spin_scalars as spin_components, task_weights, velocity_frame
 
 
 def test_velocity_frame_is_right_handed_and_horizontal() -> None:

@@ -14,10 +14,10 @@ import pytest
 from scipy.optimize import least_squares
 
 from studio import constants as C
-from studio import robot_description as rd
+from studio.robot import description as rd
 from studio.errors import InvalidInputError, RobotModelError
 from studio.paths import robots_dir
-from studio.robot import JointDynamics, JointLimits, Robot, load_robot
+from studio.robot.model import JointDynamics, JointLimits, Robot, load_robot
 
 TOML_PATH = robots_dir() / rd.TOML_NAME
 

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from studio.errors import DataFileError, InvalidInputError
-from studio.robust import ILLEGAL_ON_MEAN, LOG_NAME, RobustScore, objective, robustify_serve, spin_keep
-from studio.serve import GenomeBounds, HandServe, LimitScale, ServeParams, load_serve
+from studio.optimize.robust import ILLEGAL_ON_MEAN, LOG_NAME, RobustScore, objective, robustify_serve, spin_keep
+from studio.serve.params import GenomeBounds, HandServe, LimitScale, ServeParams, load_serve
 
 BOUNDS = GenomeBounds(tau=(0.65, 1.0))
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples" / "serves"
@@ -129,7 +129,7 @@ def test_bad_settings_are_rejected_by_name(kw: dict, name: str) -> None:
 
 
 def test_real_search_on_an_example_keeps_its_spin_and_legality() -> None:
-    from studio.evaluate import EvaluationContext
+    from studio.serve.evaluate import EvaluationContext
 
     serve = load_serve(EXAMPLES / "backspin_right.json")
     res = robustify_serve(serve, context=EvaluationContext.default(), evaluations=24, sigma=0.05)

@@ -1,4 +1,4 @@
-"""Tests of studio.rollout: the MuJoCo scene and the rollout of robot + ball."""
+"""Tests of studio.sim.rollout: the MuJoCo scene and the rollout of robot + ball."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ import mujoco
 import numpy as np
 import pytest
 
-from studio import ball as B
+from studio.physics import ball as B
 from studio import constants as C
-from studio import toss as T
+from studio.toss import model as T
 from studio.errors import InvalidInputError
-from studio.robot import load_robot
-from studio.robot_description import BALL_CUP_FRAME
-from studio.rollout import RolloutOptions, build_scene, rollout
+from studio.robot.model import load_robot
+from studio.robot.description import BALL_CUP_FRAME
+from studio.sim.rollout import RolloutOptions, build_scene, rollout
 
 DT = 1e-3
 

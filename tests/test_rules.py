@@ -8,7 +8,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from studio.rules import LABELS, RuleParams, ServeOutcome, check_serve, net_crossing, serve_net_clearance
+from studio.serve.rules import LABELS, RuleParams, ServeOutcome, check_serve, net_crossing, serve_net_clearance
 
 
 @dataclass(frozen=True)

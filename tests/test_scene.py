@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import viser
 
-from studio.robot import load_robot
-from studio.scene import Marker, PathSegment, Playback, RacketTarget, SceneFrame, StudioScene, _wxyz_from_z
+from studio.robot.model import load_robot
+from studio.serve.target import RacketTarget
+from studio.ui.scene import Marker, PathSegment, Playback, SceneFrame, StudioScene, _wxyz_from_z
 
 
 def _free_port() -> int:

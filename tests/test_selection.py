@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from studio.errors import InvalidInputError
-from studio.library import INDEX_NAME, LIBRARY_SCHEMA, ServeLibrary
-from studio.selection import HEAVY_SPIN, SelectionParams, select_next, serve_cluster
+from studio.library.store import INDEX_NAME, LIBRARY_SCHEMA, ServeLibrary
+from studio.library.selection import HEAVY_SPIN, SelectionParams, select_next, serve_cluster
 
 PARAMS = {"tau": 0.854, "velocity": [2.62, 1.3, -2.08], "yaw": 1.919, "roll": 0.2, "t_return": 0.7, "offset": [0.0, 0.0, 0.0]}
 

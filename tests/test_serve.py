@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from studio.errors import DataFileError, InvalidInputError
-from studio.serve import (
+from studio.serve.params import (
     GenomeBounds,
     HandServe,
     LimitScale,
@@ -131,7 +131,7 @@ def test_limit_scale_in_serve_files() -> None:
 
 
 def test_limit_scale_parse_apply_and_reject() -> None:
-    from studio.robot import load_robot
+    from studio.robot.model import load_robot
 
     assert LimitScale.parse("1.3") == LimitScale(acceleration=1.3, jerk=1.3)  # the paper's expansion
     assert LimitScale.parse(" velocity=1.1, jerk=2 ") == LimitScale(velocity=1.1, jerk=2.0)

@@ -1,4 +1,4 @@
-"""Thread-pool environment (studio.threads)."""
+"""Thread-pool environment (studio.optimize.threads)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from studio.threads import THREAD_VARS, single_thread_env
+from studio.optimize.threads import THREAD_VARS, single_thread_env
 
 
 def test_single_thread_env_keeps_or_overrides_user_settings(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -25,6 +25,6 @@ def test_single_thread_env_keeps_or_overrides_user_settings(monkeypatch: pytest.
 
 def test_module_does_not_import_numpy() -> None:
     """The CLI sets the variables before numpy loads: importing the module must not load it."""
-    code = "import sys, studio.threads; print('numpy' in sys.modules)"
+    code = "import sys, studio.optimize.threads; print('numpy' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"

@@ -1,4 +1,4 @@
-"""Tests of studio.toss: release model, toss primitive, synthetic recordings, toss model, CSV."""
+"""Tests of studio.toss.model: release model, toss primitive, synthetic recordings, toss model, CSV."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from studio import ball
+from studio.physics import ball
 from studio import constants as C
-from studio import toss as T
+from studio.toss import model as T
 from studio.errors import DataFileError, InvalidInputError
-from studio.robot import Robot, load_robot
+from studio.robot.model import Robot, load_robot
 
 END_LINE_X = -C.TABLE_LENGTH / 2
 
@@ -144,7 +144,7 @@ def test_toss_rises_vertically_without_spin(right: T.TossPrimitive, nominal: tup
     # The analytic drag formula agrees with the integrated flight.
     k = ball.DEFAULT_FLIGHT.drag_constant
     assert T.vertical_rise(float(rel.velocity[2]), drag_k=k) == pytest.approx(rise, abs=5e-4)
-    # Cross-check of the toss flight against studio.ball.simulate (before any contact).
+    # Cross-check of the toss flight against studio.physics.ball.simulate (before any contact).
     traj = ball.simulate(ball.BallState(rel.position, rel.velocity, np.zeros(3)), 0.6, t0=rel.time, dt_out=1e-3)
     z_sim = np.interp(tn[tn > rel.time + 0.01], traj.t, traj.p[:, 2], right=np.nan)
     ok = np.isfinite(z_sim)
@@ -462,7 +462,7 @@ def _rising_crossing(t: np.ndarray, z: np.ndarray, z_cross: float) -> float:
 
 
 def _recorded_positions_at(side: T.TossSide, taus: tuple[float, ...]) -> np.ndarray:
-    """Independent of studio.toss's estimators: each shipped recording of ``side`` put on
+    """Independent of studio.toss.model's estimators: each shipped recording of ``side`` put on
     the command clock by its in-cup crossing of z = 0.21 m (against the primitive's
     predicted cup height), then a quadratic fitted to its samples within +/-30 ms of each
     tau: positions (K, len(taus), 3) [m]."""
@@ -638,7 +638,7 @@ def test_noise_validation() -> None:
 def test_t_lift_of_the_shipped_recordings_is_unchanged() -> None:
     """The release-time fit's residuals come from per-recording sums (normal equations);
     the dense least-squares version gave these values (to the last digits)."""
-    from studio.toss import load_default_toss_model
+    from studio.toss.model import load_default_toss_model
 
     assert load_default_toss_model("right").t_lift == pytest.approx(0.36278579354291823, abs=1e-9)
     assert load_default_toss_model("left").t_lift == pytest.approx(0.3613239543407857, abs=1e-9)

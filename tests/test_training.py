@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 
 from studio.errors import InvalidInputError
-from studio.library import ServeLibrary
-from studio.serve import serve_from_json
-from studio.training import PAPER_TABLE_II_SIM, TrainConfig, TrainedServe, summary_table, train_serves
+from studio.library.store import ServeLibrary
+from studio.serve.params import serve_from_json
+from studio.optimize.training import PAPER_TABLE_II_SIM, TrainConfig, TrainedServe, summary_table, train_serves
 
 
 def test_jobs_alternate_sides_and_seeds(tmp_path: Path) -> None:
@@ -43,21 +43,21 @@ def test_summary_table_statistics_and_paper_row(tmp_path: Path) -> None:
 
 
 def _cfg(tmp_path: Path, iterations: int) -> TrainConfig:
-    from studio.serve import load_serve
+    from studio.serve.params import load_serve
 
     seed_serve = load_serve(Path(__file__).resolve().parent.parent / "examples" / "serves" / "topspin_right.json")
     return TrainConfig(task="topspin_velocity", count=2, side="right", iterations=iterations, population=2, tosses=1, workers=1, seeds=(seed_serve,), runs_dir=tmp_path / "runs")
 
 
 def test_training_on_ray_streams_records_resumes_and_exports(tmp_path: Path) -> None:
-    import studio.training  # noqa: F401  (sets RAY_ENABLE_UV_RUN_RUNTIME_ENV=0 before ray is imported)
+    import studio.optimize.training  # noqa: F401  (sets RAY_ENABLE_UV_RUN_RUNTIME_ENV=0 before ray is imported)
 
     ray = pytest.importorskip("ray")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, object_store_memory=80 * 1024 * 1024)
     try:
         # run 0 was started locally and interrupted after its first batch: a partial log, not exported
         cfg1 = _cfg(tmp_path, iterations=1)
-        from studio.training import _run_job
+        from studio.optimize.training import _run_job
 
         run0 = cfg1.jobs()[0][3]
         _run_job("right", 0, cfg1, run0, workers=1)
@@ -86,13 +86,13 @@ def test_training_on_ray_streams_records_resumes_and_exports(tmp_path: Path) -> 
 
 
 def test_runs_folder_of_another_limit_scale_is_refused(tmp_path: Path) -> None:
-    from studio.serve import LimitScale
-    from studio.training import finished_runs
+    from studio.serve.params import LimitScale
+    from studio.optimize.training import finished_runs
 
     cfg = TrainConfig(task="backspin", count=1, side="right", runs_dir=tmp_path)
     (_, _, _, run_dir) = cfg.jobs()[0]
     run_dir.mkdir(parents=True)
-    from studio.optimizer import RUN_SCHEMA
+    from studio.optimize.optimizer import RUN_SCHEMA
 
     (run_dir / "run.json").write_text(json.dumps({"schema": RUN_SCHEMA, "limit_scale": {"acceleration": 1.5, "jerk": 1.5}}))
     (run_dir / "exported.json").write_text(json.dumps({"id": None, "legal": False, "reward": -3.0, "row": {}}))

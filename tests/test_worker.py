@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from studio.worker import LatestWorker, WorkResult
+from studio.ui.worker import LatestWorker, WorkResult
 
 
 def test_newest_input_wins_and_intermediate_dropped() -> None:

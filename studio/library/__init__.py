@@ -1,0 +1,1 @@
+"""The serve library a robot controller reads, serve selection and match statistics."""

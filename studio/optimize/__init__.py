@@ -1,0 +1,1 @@
+"""HEBO optimization of serves, robustification on recorded tosses, training many serves."""

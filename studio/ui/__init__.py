@@ -1,0 +1,1 @@
+"""The viser studio and the Panel dashboard (thin front ends over the core)."""
