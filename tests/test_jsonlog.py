@@ -33,7 +33,7 @@ def test_round_trip_and_torn_last_line(tmp_path: Path) -> None:
 def test_a_bad_complete_line_is_an_error_naming_file_and_line(tmp_path: Path) -> None:
     path = tmp_path / "log.jsonl"
     path.write_text(json.dumps({"i": 0}) + "\n" + "{nope}\n" + json.dumps({"i": 2}) + "\n")
-    with pytest.raises(DataFileError, match=r"log.jsonl: line 2: not a record"):
+    with pytest.raises(DataFileError, match=r"log.jsonl: line 2: not valid JSON"):
         read_jsonl(path, _parse)
     path.write_text(json.dumps({"i": 0}) + "\n" + json.dumps({"j": 1}) + "\n")  # parse rejects it (KeyError)
     with pytest.raises(DataFileError, match="line 2"):

@@ -75,7 +75,7 @@ def test_serve_file_round_trip(tmp_path: Path) -> None:
         side="left",
         params=ServeParams(tau=0.81, velocity=(6.0, -0.5, 1.5), yaw=1.6, roll=-0.2, offset=(0.01, 0, 0)),
         notes="demo",
-        extra={"author": "me"},
+        extra={"x_author": "me", "spin": "topspin"},
     )
     path = save_serve(tmp_path / "s.json", serve)
     assert load_serve(path) == serve
@@ -95,6 +95,13 @@ def test_serve_file_round_trip(tmp_path: Path) -> None:
         (lambda d: d.__setitem__("limit_scale", {"jerk": math.nan}), "limit_scale': LimitScale.jerk"),
         (lambda d: d.__setitem__("limit_scale", {"acceleration": 40}), "limit_scale': LimitScale.acceleration"),
         (lambda d: d.__setitem__("limit_scale", {"torque": 1.2}), "limit_scale': unknown keys"),
+        (lambda d: d.__setitem__("limit_scales", {"acceleration": 1.5}), "unknown fields \\['limit_scales'\\]"),
+        (lambda d: d.__setitem__("spin", 3), "field 'spin'"),
+        (lambda d: d.__setitem__("name", "\ud800"), "field 'name': not valid Unicode"),
+        (lambda d: d.__setitem__("name", "n" * 500), "field 'name'"),
+        (lambda d: d["params"].__setitem__("t_return", 1e6), "t_return = 1e\\+06 is outside the allowed range \\[0.1, 5\\]"),
+        (lambda d: d["params"].__setitem__("velocity", [1e300, 0, 0]), "velocity = 1e\\+300 is outside the allowed range"),
+        (lambda d: d["params"].__setitem__("tau", 50.0), "tau = 50 is outside"),
     ],
 )
 def test_bad_serve_json_names_field(mutate, field: str) -> None:  # type: ignore[no-untyped-def]
@@ -153,3 +160,36 @@ def test_limit_scale_parse_apply_and_reject() -> None:
     np.testing.assert_array_equal(out.lower, base.lower)
     np.testing.assert_array_equal(out.upper, base.upper)
     assert LimitScale().apply(base) is base
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ("{}".encode("utf-16"), "not UTF-8 text"),
+        (b"[" * 5000 + b"]" * 5000, "nested 5000 levels deep"),
+        (b'{"name": NaN}', "field 'name': must be a finite number"),
+        (b'{"n": ' + b"9" * 5000 + b"}", "an integer of 5000 digits"),
+        (b'{"n": 1e400}', "field 'n': must be a finite number"),
+        (b'{"name": "\\ud800"}', "field 'name' is not valid Unicode"),
+        (b"", "not valid JSON"),
+    ],
+    ids=["utf16", "deep", "nan", "huge-int", "huge-float", "surrogate", "empty"],
+)
+def test_corrupt_serve_files_name_the_file_and_problem(tmp_path: Path, content: bytes, message: str) -> None:
+    path = tmp_path / "bad.json"
+    path.write_bytes(content)
+    with pytest.raises(DataFileError, match=f"bad.json: .*{message}"):
+        load_serve(path)
+
+
+def test_a_fifo_or_huge_file_is_refused_without_reading_it(tmp_path: Path) -> None:
+    import os
+
+    fifo = tmp_path / "pipe.json"
+    os.mkfifo(fifo)
+    with pytest.raises(DataFileError, match="pipe.json: not a regular file"):
+        load_serve(fifo)  # returns at once: opened non-blocking, refused by type
+    big = tmp_path / "big.json"
+    big.write_bytes(b" " * 1_000_001)
+    with pytest.raises(DataFileError, match="big.json: 1000001 bytes, more than the 1000000 bytes allowed"):
+        load_serve(big)

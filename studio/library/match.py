@@ -44,7 +44,8 @@ from typing import Any
 
 from studio.errors import DataFileError, InvalidInputError
 from studio.storage.jsonlog import append_jsonl
-from studio.library.store import LibraryEntry, ServeLibrary, lone_surrogate
+from studio.library.store import LibraryEntry, ServeLibrary
+from studio.storage.jsonfile import lone_surrogate, parse_json, read_file_bytes
 
 MATCH_LOG = "matches.jsonl"
 """File name of the match log inside a library folder."""
@@ -155,20 +156,12 @@ def load_points(path: str | Path) -> list[Point]:
     path = Path(path)
     if not path.exists():
         return []
-    try:
-        lines = path.read_text(encoding="utf-8").split("\n")  # the writer's line end only
-    except (OSError, UnicodeDecodeError) as err:
-        raise DataFileError(path, f"cannot read: {err}") from None
+    lines = read_file_bytes(path).split(b"\n")  # the writer's line end only
     out: list[Point] = []
     for i, line in enumerate(lines, start=1):
         if not line.strip():
             continue
-        try:
-            doc = json.loads(line)
-        except json.JSONDecodeError as err:
-            raise DataFileError(path, f"line {i}: not valid JSON (column {err.colno}): {err.msg}") from None
-        except (RecursionError, ValueError) as err:  # nested too deeply, an integer of > 4300 digits
-            raise DataFileError(path, f"line {i}: not a point ({err or 'JSON nested too deeply'})") from None
+        doc = parse_json(line, path, line=i)
         try:
             out.append(point_from_json(doc, where=f"line {i}"))
         except InvalidInputError as err:

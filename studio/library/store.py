@@ -68,6 +68,7 @@ import numpy.typing as npt
 
 from studio.errors import DataFileError, InvalidInputError
 from studio.storage.filelock import locked
+from studio.storage.jsonfile import check_values, read_json_file
 from studio.paths import robots_dir
 from studio.robot.description import load_spec
 from studio.serve.params import HandServe, LimitScale, serve_from_json
@@ -79,8 +80,6 @@ INDEX_NAME = "index.json"
 _ID = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
 _ENTRY_KEYS = {"id", "name", "side", "task", "params", "legal", "reward", "arrays", "created"}
 _ARRAYS = ("t", "u", "q", "ball_t", "ball_p")
-_MAX_INT = 2**53 - 1
-"""Largest integer magnitude in an index (exact in every JSON reader)."""
 _LEGACY_INF = ("cup_hold.worst_ratio",)
 """Fields where ``Infinity`` is accepted (written by an earlier version; now ``null``)."""
 _STATE_VECTORS = ("p", "v", "w")
@@ -122,42 +121,9 @@ def _atomic_write(path: Path, data: bytes) -> None:
 
 
 def _strict_json(value: Any, where: str, path: Path) -> None:
-    """Raise DataFileError naming ``where`` unless ``value`` is strict JSON: finite numbers,
-    integers within +-:data:`_MAX_INT`, valid Unicode strings and keys (see module doc)."""
-    stack: list[tuple[Any, str]] = [(value, where)]
-    while stack:  # iterative: a deeply nested file cannot exhaust the Python stack
-        v, w = stack.pop()
-        if isinstance(v, dict):
-            for k, x in v.items():
-                _check_text(k, f"{w} (a key)", path)
-                stack.append((x, f"{w}.{k}"))
-        elif isinstance(v, list):
-            stack.extend((x, f"{w}[{i}]") for i, x in enumerate(v))
-        elif isinstance(v, str):
-            _check_text(v, w, path)
-        elif isinstance(v, bool) or v is None:
-            continue
-        elif isinstance(v, int) and abs(v) > _MAX_INT:
-            raise DataFileError(path, f"field '{w}': integer out of range (|n| > 2**53 - 1, {len(str(abs(v)))} digits)")
-        elif isinstance(v, float) and not math.isfinite(v) and not (v > 0 and w.endswith(_LEGACY_INF)):
-            raise DataFileError(path, f"field '{w}': must be a finite number, got {v!r}")
-
-
-def lone_surrogate(text: str) -> int | None:
-    """Position of the first lone surrogate in ``text`` (not valid Unicode: cannot be
-    written as UTF-8), or None when the text is valid."""
-    try:
-        text.encode("utf-8")
-    except UnicodeEncodeError as err:
-        return int(err.start)
-    return None
-
-
-def _check_text(text: str, where: str, path: Path) -> None:
-    """DataFileError unless ``text`` is valid Unicode (encodable as UTF-8: no lone surrogate)."""
-    pos = lone_surrogate(text)
-    if pos is not None:
-        raise DataFileError(path, f"field '{where}': not valid Unicode (lone surrogate {text[pos]!r} at position {pos})")
+    """Raise DataFileError naming ``where`` unless ``value`` is strict JSON (module doc;
+    :func:`studio.storage.jsonfile.check_values`)."""
+    check_values(value, path, root=where, infinity_at=_LEGACY_INF)
 
 
 def _check_ball_state(state: Any, where: str, path: Path) -> None:
@@ -272,18 +238,7 @@ class ServeLibrary:
         """All entries, validated (strict JSON, see the module doc). An absent library is empty."""
         if not self.index_path.exists():
             return []
-        try:
-            doc = json.loads(self.index_path.read_bytes().decode("utf-8"))
-        except json.JSONDecodeError as err:
-            raise DataFileError(self.index_path, f"not valid JSON (line {err.lineno}, column {err.colno}): {err.msg}") from None
-        except UnicodeDecodeError as err:
-            raise DataFileError(self.index_path, f"not UTF-8 text (byte {err.start}: {err.reason})") from None
-        except RecursionError:
-            raise DataFileError(self.index_path, "not a library index: JSON nested too deeply") from None
-        except ValueError as err:  # e.g. an integer of more than 4300 digits
-            raise DataFileError(self.index_path, f"not a library index: {err}") from None
-        except OSError as err:
-            raise DataFileError(self.index_path, f"cannot read: {err}") from None
+        doc = read_json_file(self.index_path, infinity_at=_LEGACY_INF)
         if isinstance(doc, dict):
             _strict_json({k: v for k, v in doc.items() if k != "serves"}, "index", self.index_path)
         if not isinstance(doc, dict) or doc.get("schema") != LIBRARY_SCHEMA:
@@ -511,16 +466,9 @@ def read_open_request(folder: str | Path) -> OpenRequest | None:
         DataFileError: the request file is malformed (file and field named).
     """
     path = Path(folder) / OPEN_REQUEST_NAME
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
+    if not path.exists():
         return None
-    except OSError as exc:
-        raise DataFileError(str(path), f"cannot read ({exc})") from exc
-    try:
-        doc = json.loads(raw)
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise DataFileError(str(path), f"not valid JSON ({exc})") from exc
+    doc = read_json_file(path, max_bytes=4096)
     if not isinstance(doc, dict) or doc.get("schema") != OPEN_REQUEST_SCHEMA:
         raise DataFileError(str(path), f"schema must be {OPEN_REQUEST_SCHEMA!r}")
     sid, nonce = doc.get("id"), doc.get("nonce")

@@ -31,6 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from studio.errors import DataFileError, InvalidInputError
+from studio.storage.jsonfile import lone_surrogate
 
 if TYPE_CHECKING:
     from studio.robot.model import JointLimits
@@ -112,6 +113,23 @@ class GenomeBounds:
         return low, high
 
 
+PARAM_RANGES: dict[str, tuple[float, float]] = {
+    "tau": (0.05, 3.0),
+    "velocity": (-30.0, 30.0),
+    "yaw": (-4 * math.pi, 4 * math.pi),
+    "roll": (-4 * math.pi, 4 * math.pi),
+    "t_return": (0.1, 5.0),
+    "offset": (-0.5, 0.5),
+}
+"""Physically possible range of each serve parameter (each component for vectors): a
+toss is over within 3 s; no racket moves faster than 30 m/s (elite smashes reach ~15 m/s
+at the racket); the angles wrap (two turns either way accepted); a return to rest longer
+than 5 s only wastes time (and memory: the plan is sampled at 1 kHz); a contact 0.5 m
+off the toss path misses the ball. Outside them a value is a typo, refused with the
+range; inside them the planner and the checks judge the serve."""
+PARAM_UNITS = {"tau": "s", "velocity": "m/s", "yaw": "rad", "roll": "rad", "t_return": "s", "offset": "m"}
+
+
 @dataclass(frozen=True, slots=True)
 class ServeParams:
     """One serve's strike parameters in physical units (the decoded genome)."""
@@ -139,10 +157,11 @@ class ServeParams:
             if len(value) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in value):
                 raise InvalidInputError(f"ServeParams.{name} must be 3 finite numbers, got {value!r}")
             object.__setattr__(self, name, tuple(float(x) for x in value))
-        if self.tau <= 0:
-            raise InvalidInputError(f"ServeParams.tau must be positive [s], got {self.tau}")
-        if self.t_return <= 0:
-            raise InvalidInputError(f"ServeParams.t_return must be positive [s], got {self.t_return}")
+        for name, (lo, hi) in PARAM_RANGES.items():
+            values = getattr(self, name)
+            for value in values if isinstance(values, tuple) else (values,):
+                if not lo <= value <= hi:
+                    raise InvalidInputError(f"ServeParams.{name} = {value:.6g} is outside the allowed range [{lo:g}, {hi:g}] ({PARAM_UNITS[name]})")
 
     @property
     def normal(self) -> npt.NDArray[np.float64]:
@@ -301,7 +320,8 @@ class HandServe:
     task: str | None = None
     """Optional reward task preset the serve was designed for."""
     extra: dict[str, Any] = field(default_factory=dict)
-    """Other JSON fields kept verbatim on round trips (forward compatibility)."""
+    """The optional ``spin`` label and the user's own JSON fields (names starting with
+    ``x_``), kept verbatim on round trips."""
     limit_scale: LimitScale = field(default_factory=LimitScale)
     """Derivative-limit expansion the serve is planned with (JSON field ``limit_scale``,
     written only when it is not the identity)."""
@@ -335,8 +355,18 @@ class HandServe:
         return replace(self, params=params)
 
 
+MAX_SERVE_BYTES = 1_000_000
+"""Size limit of a serve file [bytes] (a serve is ~1 kB; notes of a few pages fit)."""
 _PARAM_KEYS = {"tau", "velocity", "yaw", "roll", "t_return", "offset"}
 _TOP_KEYS = {"schema", "name", "side", "params", "notes", "task", "limit_scale"}
+_LABEL_KEYS = {"spin"}
+"""Optional free labels kept verbatim (``spin``: the intended spin, e.g. "backspin")."""
+MAX_NAME_LENGTH = 200
+"""Longest serve name accepted [characters]."""
+EXTENSION_PREFIX = "x_"
+"""Top-level fields of a serve file starting with this are the user's own: kept verbatim
+on round trips. Any other unknown field is refused (a typo such as ``limit_scales``
+would otherwise plan silently at the robot's own limits)."""
 
 
 def serve_from_json(data: Any, *, source: str = "<serve>") -> HandServe:
@@ -351,8 +381,10 @@ def serve_from_json(data: Any, *, source: str = "<serve>") -> HandServe:
     if schema != SERVE_SCHEMA:
         raise fail(f"field 'schema': expected {SERVE_SCHEMA!r}, got {schema!r}")
     name = data.get("name")
-    if not isinstance(name, str) or not name.strip():
-        raise fail("field 'name': must be a non-empty string")
+    if not isinstance(name, str) or not name.strip() or len(name) > MAX_NAME_LENGTH:
+        raise fail(f"field 'name': must be a non-empty string of at most {MAX_NAME_LENGTH} characters")
+    if lone_surrogate(name) is not None:
+        raise fail("field 'name': not valid Unicode (a lone surrogate cannot be shown or saved)")
     side = data.get("side")
     if side not in ("right", "left"):
         raise fail(f"field 'side': must be 'right' or 'left', got {side!r}")
@@ -397,22 +429,22 @@ def serve_from_json(data: Any, *, source: str = "<serve>") -> HandServe:
     if task is not None and not isinstance(task, str):
         raise fail("field 'task': must be a string or absent")
     limit_scale = LimitScale.from_json(data["limit_scale"], source=source) if "limit_scale" in data else LimitScale()
-    extra = {k: v for k, v in data.items() if k not in _TOP_KEYS}
+    unknown = sorted(k for k in data if k not in _TOP_KEYS | _LABEL_KEYS and not k.startswith(EXTENSION_PREFIX))
+    if unknown:
+        raise fail(f"unknown fields {unknown} (known: {sorted(_TOP_KEYS | _LABEL_KEYS)}; your own fields must start with {EXTENSION_PREFIX!r})")
+    for key in _LABEL_KEYS & set(data):
+        if not isinstance(data[key], str) or len(data[key]) > MAX_NAME_LENGTH:
+            raise fail(f"field '{key}': must be a string of at most {MAX_NAME_LENGTH} characters")
+    extra = {k: v for k, v in data.items() if k.startswith(EXTENSION_PREFIX) or k in _LABEL_KEYS}
     return HandServe(name=name.strip(), side=side, params=params, notes=notes, task=task, extra=extra, limit_scale=limit_scale)
 
 
 def load_serve(path: str | Path) -> HandServe:
-    """Read and validate a hand-designed serve JSON file."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as err:
-        raise DataFileError(path, f"cannot read: {err.strerror or err}") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise DataFileError(path, f"not valid JSON (line {err.lineno}, column {err.colno}): {err.msg}") from None
-    return serve_from_json(data, source=str(path))
+    """Read and validate a hand-designed serve JSON file (strict JSON of at most
+    :data:`MAX_SERVE_BYTES`, :mod:`studio.storage.jsonfile`)."""
+    from studio.storage.jsonfile import read_json_file  # noqa: PLC0415
+
+    return serve_from_json(read_json_file(path, max_bytes=MAX_SERVE_BYTES), source=str(path))
 
 
 def save_serve(path: str | Path, serve: HandServe) -> Path:

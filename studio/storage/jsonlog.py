@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import IO, Any, TypeVar
 
 from studio.errors import DataFileError
+from studio.storage.jsonfile import parse_json, read_file_bytes
 
 T = TypeVar("T")
 TORN_SUFFIX = ".torn"
@@ -130,6 +131,15 @@ def _set_aside(path: Path, torn: bytes) -> None:
     _LOG.warning("%s: torn last line (%d bytes, left by an interrupted write) moved to %s; its work is redone", path, len(torn), aside)
 
 
+def _record(path: Path, number: int, line: bytes, parse: Callable[[Any], T]) -> T:
+    """``parse`` of one strict-JSON log line; DataFileError naming the file and line."""
+    doc = parse_json(line, path, line=number)
+    try:
+        return parse(doc)
+    except (ValueError, KeyError, TypeError, OverflowError, RecursionError) as exc:
+        raise DataFileError(path, f"line {number}: not a record of this log ({exc})") from None
+
+
 def read_jsonl(path: Path, parse: Callable[[Any], T]) -> list[T]:
     """The records of ``path`` (``parse`` of each decoded line; an absent file is empty),
     for resuming the work the log records.
@@ -142,20 +152,17 @@ def read_jsonl(path: Path, parse: Callable[[Any], T]) -> list[T]:
     """
     if not path.exists():
         return []
-    raw = path.read_bytes()
+    raw = read_file_bytes(path)
     end = raw.rfind(b"\n") + 1
     out: list[T] = []
-    for k, line in enumerate(raw[:end].split(b"\n")[:-1]):
-        if not line.strip():
-            continue
-        try:
-            out.append(parse(json.loads(line)))
-        except (ValueError, KeyError, TypeError, RecursionError) as exc:
-            raise DataFileError(path, f"line {k + 1}: not a record of this log ({exc})") from None
+    lines = raw[:end].split(b"\n")[:-1]
+    for k, line in enumerate(lines):
+        if line.strip():
+            out.append(_record(path, k + 1, line, parse))
     tail = raw[end:]
     if not tail.strip() or _complete(tail, parse):
         if tail.strip():
-            out.append(parse(json.loads(tail)))
+            out.append(_record(path, len(lines) + 1, tail, parse))
         ensure_line_end(path, parse)
     else:
         _set_aside(path, tail)
