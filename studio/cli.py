@@ -293,7 +293,7 @@ def _cmd_dashboard(args: argparse.Namespace) -> int:
 
 
 def _cmd_toss(args: argparse.Namespace) -> int:
-    from studio.toss.model import toss_report
+    from studio.toss.report import toss_report
 
     print(toss_report(side=args.side, csv_path=args.csv))
     return 0
@@ -366,8 +366,8 @@ def _library_show(args: argparse.Namespace) -> int:
 
 def _library_validate(args: argparse.Namespace) -> int:
     from studio.errors import DataFileError
-    from studio.library.store import ServeLibrary
     from studio.library.match import MATCH_LOG, load_points
+    from studio.library.store import ServeLibrary, orphan_files
 
     lib = ServeLibrary(args.dir)
     try:
@@ -380,7 +380,10 @@ def _library_validate(args: argparse.Namespace) -> int:
     except DataFileError as err:
         print(f"serve-studio library validate: invalid: {err}", file=sys.stderr)
         return 1
+    leftovers = orphan_files(lib, entries)
     print(f"{args.dir}: valid ({len(entries)} serves with their arrays, {len(points)} logged points)")
+    if leftovers:  # valid, but files no entry refers to: left by a crash or by hand
+        print(f"note: {len(leftovers)} file(s) no entry refers to (kept; delete them by hand if unwanted): " + ", ".join(leftovers[:10]))
     return 0
 
 

@@ -322,3 +322,49 @@ def test_unparsable_index_is_reported_and_kept(tmp_path: Path, raw: bytes, messa
         with pytest.raises(DataFileError, match=f"index.json: {message}"):
             write()
     assert lib.index_path.read_bytes() == raw and sorted(p.name for p in tmp_path.iterdir()) == [".lock", INDEX_NAME]
+
+
+def test_library_files_are_group_readable_and_links_out_are_refused(tmp_path: Path, evaluation) -> None:  # type: ignore[no-untyped-def]
+    """Files get the umask's mode (a controller of the group can read them); a pruned/ or
+    matches.jsonl that is a symlink is refused, nothing written outside the library; an NPZ
+    that is a FIFO or links out is refused at once by validate."""
+    import os
+    import stat
+    import subprocess
+    import sys
+
+    from studio.library.match import MATCH_LOG, Point, append_point, prune
+
+    lib = ServeLibrary(tmp_path / "lib")
+    entry = lib.add(evaluation)
+    umask = os.umask(0o022)
+    os.umask(umask)
+    for path in (lib.index_path, tmp_path / "lib" / entry.data["arrays"]):
+        assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~umask
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    (tmp_path / "lib" / "pruned").symlink_to(outside)
+    with pytest.raises(DataFileError, match="pruned: is a symbolic link"):
+        prune(lib, [entry.id])
+    assert list(outside.iterdir()) == [] and lib.get(entry.id)
+    (tmp_path / "lib" / MATCH_LOG).symlink_to(outside / "log.jsonl")
+    with pytest.raises(DataFileError, match="is a symbolic link"):
+        append_point(tmp_path / "lib" / MATCH_LOG, Point(time="2026-01-01T00:00:00+00:00", server="robot", serve=entry.id, winner="robot", ace=False, opponent="x"))
+    assert not (outside / "log.jsonl").exists()
+    (tmp_path / "lib" / MATCH_LOG).unlink()
+    npz = tmp_path / "lib" / entry.data["arrays"]
+    npz.unlink()
+    os.mkfifo(npz)
+    out = subprocess.run([sys.executable, "-m", "studio.cli", "library", "validate", str(tmp_path / "lib")], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1 and "not a regular file" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_validate_names_orphan_files(tmp_path: Path, evaluation) -> None:  # type: ignore[no-untyped-def]
+    from studio.library.store import orphan_files
+
+    lib = ServeLibrary(tmp_path / "lib")
+    entry = lib.add(evaluation)
+    (tmp_path / "lib" / "ghost-0000.npz").write_bytes(b"x")
+    (tmp_path / "lib" / ".index.json.abc.tmp").write_bytes(b"x")
+    assert orphan_files(lib, lib.entries()) == [".index.json.abc.tmp", "ghost-0000.npz"]
+    assert entry.data["arrays"] not in orphan_files(lib, lib.entries())

@@ -45,6 +45,7 @@ from typing import Any
 from studio.errors import DataFileError, InvalidInputError
 from studio.storage.jsonlog import append_jsonl
 from studio.library.store import LibraryEntry, ServeLibrary
+from studio.storage.confined import confined
 from studio.storage.jsonfile import lone_surrogate, parse_json, read_file_bytes
 
 MATCH_LOG = "matches.jsonl"
@@ -177,6 +178,8 @@ def append_point(path: str | Path, point: Point) -> None:
     log hold its lock (:func:`record_point` does).
     """
     path = Path(path)
+    if path.is_symlink():
+        raise DataFileError(path, "is a symbolic link: a match log is appended only in place")
     point_from_json(point.to_json(), where=f"{path}: new point")
     path.parent.mkdir(parents=True, exist_ok=True)
     append_jsonl(path, point.to_json(), parse=lambda d: point_from_json(d, where=f"{path}: last line"))
@@ -418,7 +421,7 @@ def _prune_locked(library: ServeLibrary, ids: list[str]) -> list[str]:
         raise InvalidInputError(f"cannot prune {unknown}: not in library {library.folder}")
     if not ids:
         return []
-    pruned_lib = ServeLibrary(library.folder / PRUNED_DIR)
+    pruned_lib = ServeLibrary(confined(library.folder, PRUNED_DIR))  # a pruned/ linked elsewhere is refused
     with pruned_lib.lock():
         kept_pruned = [e.data for e in pruned_lib.entries() if e.id not in ids]
         for sid in ids:

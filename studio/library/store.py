@@ -56,6 +56,7 @@ import os
 import re
 import tempfile
 import uuid
+import zipfile
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
@@ -68,7 +69,8 @@ import numpy.typing as npt
 
 from studio.errors import DataFileError, InvalidInputError
 from studio.storage.filelock import locked
-from studio.storage.jsonfile import check_values, read_json_file
+from studio.storage.confined import confined
+from studio.storage.jsonfile import check_values, read_file_bytes, read_json_file
 from studio.paths import robots_dir
 from studio.robot.description import load_spec
 from studio.serve.params import HandServe, LimitScale, serve_from_json
@@ -80,6 +82,8 @@ INDEX_NAME = "index.json"
 _ID = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
 _ENTRY_KEYS = {"id", "name", "side", "task", "params", "legal", "reward", "arrays", "created"}
 _ARRAYS = ("t", "u", "q", "ball_t", "ball_p")
+MAX_NPZ_BYTES = 256 * 2**20
+"""Size limit of one serve's arrays file [bytes] (a 10 s motion is ~0.5 MB)."""
 _LEGACY_INF = ("cup_hold.worst_ratio",)
 """Fields where ``Infinity`` is accepted (written by an earlier version; now ``null``)."""
 _STATE_VECTORS = ("p", "v", "w")
@@ -107,9 +111,18 @@ def robot_identity(limit_scale: LimitScale | None = None) -> dict[str, Any]:
     return out
 
 
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
+FILE_MODE = 0o666 & ~_UMASK
+"""Mode of the files a library writes: what ``open()`` would give under the user's umask
+(usually 0644: a controller running as another user of the group can read them; the
+temporary file's own 0600 is not kept)."""
+
+
 def _atomic_write(path: Path, data: bytes) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, FILE_MODE)
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
             fh.flush()
@@ -187,11 +200,12 @@ class LibraryEntry:
 
     def arrays(self) -> dict[str, npt.NDArray[Any]]:
         """The serve's arrays, validated (never unpickled)."""
-        path = self.folder / str(self.data["arrays"])
+        path = confined(self.folder, str(self.data["arrays"]))
+        raw = read_file_bytes(path, max_bytes=MAX_NPZ_BYTES)  # a pipe or a link out of the library is refused
         try:
-            with np.load(path, allow_pickle=False) as npz:
+            with np.load(io.BytesIO(raw), allow_pickle=False) as npz:
                 out = {k: npz[k] for k in npz.files}
-        except (OSError, ValueError) as err:
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
             raise DataFileError(path, f"cannot read arrays: {err}") from None
         for key in _ARRAYS:
             if key not in out:
@@ -421,6 +435,15 @@ class ServeLibrary:
                 npz_path.unlink(missing_ok=True)  # no orphan arrays
                 raise
         return LibraryEntry(entry, self.folder)
+
+
+def orphan_files(library: ServeLibrary, entries: list[LibraryEntry]) -> list[str]:
+    """Names of the NPZ and temporary files in ``library``'s folder that no entry refers to
+    (left by an export killed between its two writes, or by hand), sorted."""
+    used = {str(e.data["arrays"]) for e in entries}
+    found = [p.name for p in library.folder.glob("*.npz") if p.name not in used]
+    found += [p.name for p in library.folder.glob(".*.tmp")]
+    return sorted(found)
 
 
 # -- "open in the studio" requests --------------------------------------------------------
