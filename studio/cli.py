@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
 from pathlib import Path
 from collections.abc import Callable, Sequence
 
@@ -286,9 +287,15 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_dashboard(args: argparse.Namespace) -> int:
+    from studio.errors import InvalidInputError
     from studio.ui.dashboard import run_dashboard
 
-    run_dashboard(library_dir=args.library, host=args.host, port=args.port, studio_url=args.studio_url, runs_dir=args.runs)
+    if args.library_dir is not None and args.library is not None and Path(args.library_dir) != Path(args.library):
+        raise InvalidInputError(f"two library folders given: {args.library_dir} and --library {args.library}")
+    library = args.library_dir or args.library or "serve-library"
+    if args.reference is not None and not Path(args.reference).is_file():
+        raise InvalidInputError(f"--reference {args.reference}: no such file")
+    run_dashboard(library_dir=library, host=args.host, port=args.port, studio_url=args.studio_url, runs_dir=args.runs, reference=args.reference)
     return 0
 
 
@@ -443,6 +450,24 @@ def _library_prune(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bounded(kind: type, low: float, high: float) -> Any:
+    """An argparse type: a ``kind`` (int or float) number in [low, high], else a usage error
+    naming the range (argparse exits 2 with it; NaN, inf and text are refused)."""
+
+    def convert(text: str) -> Any:
+        import math
+
+        try:
+            value = kind(text)
+        except (TypeError, ValueError, OverflowError):
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'an integer' if kind is int else 'a number'}") from None
+        if not (math.isfinite(value) and low <= value <= high):
+            raise argparse.ArgumentTypeError(f"{text!r} is outside the allowed range [{low:g}, {high:g}]")
+        return value
+
+    return convert
+
+
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     parser = argparse.ArgumentParser(prog="serve-studio", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -450,7 +475,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
 
     p = sub.add_parser("app", help="start the serve design studio (viser, in the browser)")
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default: localhost only)")
-    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument("--port", type=_bounded(int, 1, 65535), default=8080, help="port (default 8080)")
     p.add_argument("--serves", default=None, help="folder of hand-designed serve JSON files, read and written by 'save as seed' (default: ./serves; the shipped examples are listed too)")
     p.add_argument("--library", default=None, help="serve library folder to export to (default: ./serve-library)")
     handlers["app"] = _cmd_app
@@ -458,8 +483,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p = sub.add_parser("evaluate", help="plan, simulate, check and score a serve JSON file")
     p.add_argument("serve", help="hand-designed serve JSON file")
     p.add_argument("--task", default=None, help="reward task preset (default: the serve's task or topspin_velocity)")
-    p.add_argument("--tosses", type=int, default=1, help="evaluate on K recorded tosses (robust evaluation)")
-    p.add_argument("--legal-fraction", type=float, default=0.8, help="fraction of legal tosses for a legal serve (with --tosses)")
+    p.add_argument("--tosses", type=_bounded(int, 1, 200), default=1, help="evaluate on K recorded tosses (robust evaluation)")
+    p.add_argument("--legal-fraction", type=_bounded(float, 0.0, 1.0), default=0.8, help="fraction of legal tosses for a legal serve (with --tosses)")
     p.add_argument("--mujoco", action="store_true", help="check with the MuJoCo rollout (ball tossed from the cup, robot and ball in MuJoCo) instead of the analytic predictor; not with --tosses > 1")
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     p.add_argument("--export", default=None, metavar="DIR", help="write the plan to the serve library folder DIR (with --tosses: its mean-toss evaluation, the robust result in the provenance)")
@@ -470,10 +495,10 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p = sub.add_parser("robustify", help="search around a serve for one legal on more recorded tosses, keeping its spin")
     p.add_argument("serve", help="hand-designed serve JSON file")
     p.add_argument("--task", default=None, help="reward task of the tie-break (default: the serve's)")
-    p.add_argument("--keep-spin", type=float, default=0.9, help="fraction of each spin component (top/back, side) at the net to keep (default 0.9)")
-    p.add_argument("--sigma", type=float, default=0.03, help="CMA-ES step on the normalized genome (default 0.03)")
-    p.add_argument("--evaluations", type=int, default=600, help="candidates in all, in whole generations of 12 (default 600, ~1 min); a resume counts the logged ones")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--keep-spin", type=_bounded(float, 0.0, 1.0), default=0.9, help="fraction of each spin component (top/back, side) at the net to keep (default 0.9)")
+    p.add_argument("--sigma", type=_bounded(float, 1e-6, 1.0), default=0.03, help="CMA-ES step on the normalized genome (default 0.03)")
+    p.add_argument("--evaluations", type=_bounded(int, 1, 1_000_000), default=600, help="candidates in all, in whole generations of 12 (default 600, ~1 min); a resume counts the logged ones")
+    p.add_argument("--seed", type=_bounded(int, 0, 2**32 - 1), default=0)
     p.add_argument("--out", default=None, help="where to write the robust serve (default: <serve>_robust.json beside it)")
     p.add_argument("--run-dir", default=None, help="log every candidate here (robustify.jsonl) to be able to resume")
     p.add_argument("--resume", action="store_true", help="continue the search logged in --run-dir")
@@ -483,11 +508,11 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("seeds", nargs="*", help="hand-designed serve JSON files observed before the first suggestion")
     p.add_argument("--side", choices=("right", "left"), default="right")
     p.add_argument("--task", default="topspin_velocity", help="reward task preset")
-    p.add_argument("--iterations", type=int, default=100, help="HEBO batches (paper: 100)")
-    p.add_argument("--population", type=int, default=20, help="suggestions per batch (paper: 20)")
-    p.add_argument("--tosses", type=int, default=5, help="recorded tosses per evaluation (default 5; 1: mean toss only, which overfits it)")
-    p.add_argument("--workers", type=int, default=2, help="evaluation processes")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--iterations", type=_bounded(int, 1, 10_000), default=100, help="HEBO batches (paper: 100)")
+    p.add_argument("--population", type=_bounded(int, 1, 1000), default=20, help="suggestions per batch (paper: 20)")
+    p.add_argument("--tosses", type=_bounded(int, 1, 200), default=5, help="recorded tosses per evaluation (default 5; 1: mean toss only, which overfits it)")
+    p.add_argument("--workers", type=_bounded(int, 1, 64), default=2, help="evaluation processes")
+    p.add_argument("--seed", type=_bounded(int, 0, 2**32 - 1), default=0)
     p.add_argument("--name", default=None, help="name of the resulting serve")
     p.add_argument("--run-dir", default=None, help="run folder (evaluations.jsonl, run.json); default runs/<time>-<side>-<task>")
     p.add_argument("--resume", action="store_true", help="continue the run in --run-dir without repeating evaluations")
@@ -495,32 +520,34 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--sequential", action="store_true", help="suggest each batch after the previous one is evaluated (default with 2+ workers: the next batch is suggested while the workers evaluate)")
     p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default: the seed serves' own scale, else 1; on --resume: the run's own)")
     p.add_argument("--effort-limit", action="append", default=[], metavar="JOINT=VALUE", help=EFFORT_LIMIT_HELP)
-    p.add_argument("--robustify", type=int, default=0, metavar="N", help=ROBUSTIFY_HELP)
+    p.add_argument("--robustify", type=_bounded(int, 0, 1_000_000), default=0, metavar="N", help=ROBUSTIFY_HELP)
     handlers["optimize"] = _cmd_optimize
 
     p = sub.add_parser("train", help="train COUNT serves for a task (one HEBO run each) into a library, print a Table II-like summary")
     p.add_argument("--task", required=True, help="reward task preset")
-    p.add_argument("--count", type=int, default=25)
+    p.add_argument("--count", type=_bounded(int, 1, 10_000), default=25)
     p.add_argument("--library", default=None, help="serve library folder to export to (required to train)")
     p.add_argument("--report", action="store_true", help="print the summary of the finished runs in --runs and exit (no training)")
     p.add_argument("--seeds", nargs="*", default=[], help="hand-designed serve JSON files to seed every run")
     p.add_argument("--side", choices=("right", "left", "both"), default="both")
-    p.add_argument("--iterations", type=int, default=100)
-    p.add_argument("--population", type=int, default=20)
-    p.add_argument("--tosses", type=int, default=5)
-    p.add_argument("--workers", type=int, default=2, help="evaluation processes per run")
-    p.add_argument("--seed", type=int, default=0, help="seed of the first run (run i uses seed + i)")
+    p.add_argument("--iterations", type=_bounded(int, 1, 10_000), default=100)
+    p.add_argument("--population", type=_bounded(int, 1, 1000), default=20)
+    p.add_argument("--tosses", type=_bounded(int, 1, 200), default=5)
+    p.add_argument("--workers", type=_bounded(int, 1, 64), default=2, help="evaluation processes per run")
+    p.add_argument("--seed", type=_bounded(int, 0, 2**32 - 1), default=0, help="seed of the first run (run i uses seed + i)")
     p.add_argument("--runs", default=None, help="folder of the run folders (default runs/train-<task>); rerun to resume")
     p.add_argument("--sequential", action="store_true", help="no overlapped suggestions (see optimize --sequential)")
     p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default 1; resumed runs must match)")
-    p.add_argument("--robustify", type=int, default=0, metavar="N", help=ROBUSTIFY_HELP)
+    p.add_argument("--robustify", type=_bounded(int, 0, 1_000_000), default=0, metavar="N", help=ROBUSTIFY_HELP)
     p.add_argument("--ray", default=None, metavar="ADDRESS", help="run the runs as tasks on a Ray cluster (ray.init address, e.g. auto or ray://host:10001; 'local' starts a local instance)")
     handlers["train"] = _cmd_train
 
     p = sub.add_parser("dashboard", help="serve the Panel dashboard of a serve library")
-    p.add_argument("--library", default="serve-library", help="serve library folder (default ./serve-library)")
+    p.add_argument("library_dir", nargs="?", default=None, metavar="LIBRARY", help="serve library folder (default ./serve-library; or --library)")
+    p.add_argument("--library", default=None, help="serve library folder (the same as LIBRARY)")
+    p.add_argument("--reference", default=None, metavar="FILE", help="match file in the Ace public format: its robot and human serves are drawn beside the library's in the net-crossing plots (read only)")
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default: localhost only)")
-    p.add_argument("--port", type=int, default=5006)
+    p.add_argument("--port", type=_bounded(int, 1, 65535), default=5006)
     p.add_argument("--studio-url", default="http://127.0.0.1:8080", help="link to the studio shown beside each serve")
     p.add_argument("--runs", default="runs", help="folder of HEBO run folders for the convergence plots (default ./runs; runs elsewhere are not read)")
     handlers["dashboard"] = _cmd_dashboard
@@ -534,8 +561,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
         "calibrate",
         help="refit the racket, flight and table models on real data and print one table: before, after (cross-validated), noise",
     )
-    p.add_argument("--folds", type=int, default=None, help="cross-validation folds (default 5)")
-    p.add_argument("--repeats", type=int, default=1, help="random fold splits pooled for the racket CV (default 1)")
+    p.add_argument("--folds", type=_bounded(int, 2, 100), default=None, help="cross-validation folds (default 5)")
+    p.add_argument("--repeats", type=_bounded(int, 1, 100), default=1, help="random fold splits pooled for the racket CV (default 1)")
     p.add_argument("--serve-contacts", type=Path, default=None,
                    help="robot serve contacts CSV in the Ace format (default: the shipped studio/data/robot_serve_contacts)")
     p.add_argument("--no-serve-contacts", action="store_true", help="fit the racket on the racket-at-rest bounces only")
@@ -571,11 +598,11 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     q.set_defaults(library_handler=_library_record)
     q = lsub.add_parser("stats", help="Table-I-like summary (Wilson 95 %% intervals, aces) and per-serve records")
     q.add_argument("dir", help="serve library folder")
-    q.add_argument("--min-uses", type=int, default=10, help="minimum uses before a serve is flagged for pruning")
+    q.add_argument("--min-uses", type=_bounded(int, 1, 10**9), default=10, help="minimum uses before a serve is flagged for pruning")
     q.set_defaults(library_handler=_library_stats)
     q = lsub.add_parser("prune", help="move the statistically worst serves to DIR/pruned/")
     q.add_argument("dir", help="serve library folder")
-    q.add_argument("--min-uses", type=int, default=10, help="minimum uses before a serve can be pruned (default 10)")
+    q.add_argument("--min-uses", type=_bounded(int, 1, 10**9), default=10, help="minimum uses before a serve can be pruned (default 10)")
     q.add_argument("--dry-run", action="store_true", help="only report what would be pruned")
     q.set_defaults(library_handler=_library_prune)
     handlers["library"] = _cmd_library

@@ -184,3 +184,20 @@ def test_the_real_command_prints_no_traceback(tmp_path: Path) -> None:
     path.write_bytes(SERVE_CASES["utf16"][0] or b"")
     out = subprocess.run([sys.executable, "-m", "studio.cli", "evaluate", str(path)], capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "bad.json: not UTF-8 text" in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["optimize", "--workers", "24000"], "argument --workers: '24000' is outside the allowed range [1, 64]"),
+        (["optimize", "--iterations", "nan"], "argument --iterations: 'nan' is not an integer"),
+        (["evaluate", "x.json", "--legal-fraction", "nan"], "argument --legal-fraction: 'nan' is outside the allowed range [0, 1]"),
+        (["evaluate", "x.json", "--tosses", "1e12"], "argument --tosses: '1e12' is not an integer"),
+        (["train", "--count", "0"], "argument --count: '0' is outside the allowed range [1, 10000]"),
+        (["app", "--port", "70000"], "argument --port: '70000' is outside the allowed range [1, 65535]"),
+    ],
+)
+def test_command_line_numbers_are_bounded(argv: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2 and message in capsys.readouterr().err
