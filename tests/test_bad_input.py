@@ -191,6 +191,7 @@ def test_the_real_command_prints_no_traceback(tmp_path: Path) -> None:
     [
         (["optimize", "--workers", "24000"], "argument --workers: '24000' is outside the allowed range [1, 64]"),
         (["optimize", "--iterations", "nan"], "argument --iterations: 'nan' is not an integer"),
+        (["optimize", "--iterations", "-3"], "argument --iterations: '-3' is outside the allowed range [0, 10000]"),
         (["evaluate", "x.json", "--legal-fraction", "nan"], "argument --legal-fraction: 'nan' is outside the allowed range [0, 1]"),
         (["evaluate", "x.json", "--tosses", "1e12"], "argument --tosses: '1e12' is not an integer"),
         (["train", "--count", "0"], "argument --count: '0' is outside the allowed range [1, 10000]"),

@@ -52,8 +52,9 @@ def test_optimize_tiny_budget_writes_run_and_best(capsys: pytest.CaptureFixture[
     assert "chosen serve" in out and code in (0, 1)
     assert (run / "best_serve.json").exists() and (run / "evaluations.jsonl").exists()
     assert len((run / "evaluations.jsonl").read_text().splitlines()) == 3  # the seed + 2 suggestions
-    assert main(["optimize", str(EXAMPLES / "topspin_right.json"), "--robustify", "-1"]) == 2
-    assert "--robustify must be a number of candidates >= 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as usage:
+        main(["optimize", str(EXAMPLES / "topspin_right.json"), "--robustify", "-1"])
+    assert usage.value.code == 2 and "argument --robustify: '-1' is outside the allowed range" in capsys.readouterr().err
 
 
 def test_limit_scale_option_evaluates_exports_and_optimizes(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
@@ -136,8 +137,9 @@ def test_robustify_reports_and_writes_only_an_improvement(capsys: pytest.Capture
     code = main(["robustify", str(src), "--evaluations", "24", "--run-dir", str(tmp_path / "run"), "--resume"])
     capsys.readouterr()
     assert len((tmp_path / "run" / "robustify.jsonl").read_text().splitlines()) == 24  # 12 replayed, 12 new
-    assert main(["robustify", str(src), "--keep-spin", "2"]) == 2
-    assert "keep_spin out of range" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as usage:
+        main(["robustify", str(src), "--keep-spin", "2"])
+    assert usage.value.code == 2 and "argument --keep-spin: '2' is outside the allowed range [0, 1]" in capsys.readouterr().err
 
 
 EXAMPLE_FILES = sorted(EXAMPLES.glob("*.json"))
