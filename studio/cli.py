@@ -137,8 +137,6 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     from studio.optimize.optimizer import optimize_serve
     from studio.serve.params import LimitScale, load_serve
 
-    if args.robustify < 0:
-        raise InvalidInputError(f"--robustify must be a number of candidates >= 0, got {args.robustify}")
     effort_limits = _effort_limits(args)
     seeds = [load_serve(p) for p in args.seeds]
     limit_scale = LimitScale.parse(args.limit_scale) if args.limit_scale is not None else None
