@@ -349,7 +349,8 @@ def _library_list(args: argparse.Namespace) -> int:
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for e in entries:
         d = e.data
-        u = d.get("usage") if isinstance(d.get("usage"), dict) else {}
+        usage = d.get("usage")
+        u: dict[str, Any] = usage if isinstance(usage, dict) else {}
         print(
             f"| {e.id} | {d['name']} | {d['side']} | {d.get('task') or ''} | {serve_cluster(e)} | {float(d['reward']):+.3f} "
             f"| {'yes' if d['legal'] else 'no'} | {usage_count(e)} | {u.get('won', 0)} | {u.get('lost', 0)} | {u.get('aces', 0)} |"

@@ -429,9 +429,9 @@ def serve_from_json(data: Any, *, source: str = "<serve>") -> HandServe:
     if task is not None and not isinstance(task, str):
         raise fail("field 'task': must be a string or absent")
     limit_scale = LimitScale.from_json(data["limit_scale"], source=source) if "limit_scale" in data else LimitScale()
-    unknown = sorted(k for k in data if k not in _TOP_KEYS | _LABEL_KEYS and not k.startswith(EXTENSION_PREFIX))
-    if unknown:
-        raise fail(f"unknown fields {unknown} (known: {sorted(_TOP_KEYS | _LABEL_KEYS)}; your own fields must start with {EXTENSION_PREFIX!r})")
+    unknown_fields = sorted(k for k in data if k not in _TOP_KEYS | _LABEL_KEYS and not k.startswith(EXTENSION_PREFIX))
+    if unknown_fields:
+        raise fail(f"unknown fields {unknown_fields} (known: {sorted(_TOP_KEYS | _LABEL_KEYS)}; your own fields must start with {EXTENSION_PREFIX!r})")
     for key in _LABEL_KEYS & set(data):
         if not isinstance(data[key], str) or len(data[key]) > MAX_NAME_LENGTH:
             raise fail(f"field '{key}': must be a string of at most {MAX_NAME_LENGTH} characters")
