@@ -13,9 +13,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from studio.ui.dashboard import SCATTER_AXES, LibraryDashboard, build_dashboard, entry_cluster, filter_table, spin_cluster
 from studio.library.store import INDEX_NAME, ServeLibrary
 from studio.serve.params import serve_from_json
+from studio.ui.dashboard import (
+    SCATTER_AXES,
+    LibraryDashboard,
+    build_dashboard,
+    entry_cluster,
+    filter_table,
+    spin_cluster,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 SERVES = ROOT / "examples" / "serves"
@@ -42,8 +49,8 @@ def library(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_limits_text() -> None:
-    from studio.ui.dashboard import limits_text
     from studio.serve.params import LimitScale
+    from studio.ui.dashboard import limits_text
 
     assert limits_text(LimitScale()) == "1"
     assert limits_text(LimitScale(velocity=1.1, acceleration=1.5, jerk=1.5)) == "v 1.1, a 1.5, j 1.5"
@@ -280,3 +287,59 @@ def test_convergence_of_linked_runs_inside_the_runs_folder_only(library: Path, t
     dash.reload()
     assert set(dash.histories) == {ids[0]} and "evaluations.jsonl" in dash.convergence_info.object.replace("\\_", "_")
     assert dash.layout.get_root() is not None
+
+
+def _reference_file(path: Path, n: int = 10) -> Path:
+    """A small match file in the Ace public format made up here: n rallies, each starting
+    with a serve, robot (shot_p1, from x < 0) and human (shot_p2, from x > 0) in turn."""
+    rng = np.random.default_rng(0)
+    vec = lambda x: "[" + " ".join(f"{v:.4f}" for v in x) + "]"
+    lines = ["player_id,rally_id,type,timestamp,ball_pos,ball_vel_out,ball_spin_out\n"]
+    for k in range(n):
+        if k % 2:  # human, towards -X
+            p, v, w = [1.80, -0.45, 0.22], [-5.5, 1.0, -0.5], [-40.0, 20.0, 180.0]
+        else:
+            p, v, w = [-1.62, 0.15, 0.24], [4.2, -0.5, -0.5], [20.0, 150.0, -60.0]
+        p, v, w = np.add(p, rng.normal(0, 0.03, 3)), np.add(v, rng.normal(0, 0.3, 3)), np.add(w, rng.normal(0, 60.0, 3))
+        lines.append(f"Test Player,/game_0/rally_{k}/event1,{'shot_p2' if k % 2 else 'shot_p1'},{10.0 * k},{vec(p)},{vec(v)},{vec(w)}\n")
+    path.write_text("".join(lines))
+    return path
+
+
+@pytest.mark.browser
+def test_dashboard_with_reference_serves_in_a_browser(library: Path, tmp_path: Path) -> None:
+    """The library's serves among reference serves (robot and human, marked apart) in the
+    net-crossing scatter and the spin-direction polar plot, in a real browser."""
+    import panel as pn
+    from playwright.sync_api import sync_playwright
+
+    from studio.ui.dashboard import LibraryDashboard
+
+    reference = _reference_file(tmp_path / "match.csv")
+    dash = LibraryDashboard(library, reference=reference)
+    assert dash.reference is not None and dash.reference.serves == {"robot": 5, "human": 5}
+    labels = [item.label["value"] for item in dash.polar.object.legend[0].items]
+    assert "Ace robot serves (reference): 5" in labels and "human serves (reference): 5" in labels
+    port = _free_port()
+    server = pn.serve({"/": lambda: build_dashboard(library, reference=reference)}, port=port, address="127.0.0.1", show=False, threaded=True, websocket_origin=[f"127.0.0.1:{port}"])
+    if not os.path.exists(CHROMIUM):
+        pytest.fail(f"{CHROMIUM} is missing: ./dev test installs Debian's chromium (apt-get install chromium)")
+    ARTIFACTS.mkdir(exist_ok=True)
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update", "--disable-sync"])
+            try:
+                page = browser.new_page(viewport={"width": 1400, "height": 1700})
+                page.goto(f"http://127.0.0.1:{port}/")
+                page.get_by_text("Reference: 5 robot serves").first.wait_for(timeout=30_000)
+                page.get_by_text("match.csv").first.wait_for(timeout=10_000)
+                page.get_by_text("3 serves").first.wait_for(timeout=10_000)
+                page.wait_for_timeout(1500)  # the Bokeh canvases draw
+                assert page.locator(".bk-Canvas, canvas").count() >= 2
+                path = ARTIFACTS / "dashboard_reference_serves.png"
+                page.screenshot(path=str(path), full_page=True)
+                print(f"screenshot: {path}")
+            finally:
+                browser.close()
+    finally:
+        server.stop()

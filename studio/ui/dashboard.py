@@ -5,7 +5,13 @@ What it shows:
 - the library table (``pn.widgets.Tabulator``) with filters on toss side, task, legality
   and spin cluster;
 - the ball state at the net crossing as a scatter (the paper's Fig. 3b): horizontal speed
-  vs total spin, or topspin vs sidespin, points coloured by :func:`spin_cluster`;
+  vs total spin, or topspin vs sidespin, points coloured by :func:`spin_cluster`; and the
+  spin direction as a polar plot (:func:`spin_polar`: the spin axis as the receiver sees
+  it, topspin to the right, sidespin up, radius its size);
+- with a reference match file (``reference``, the Ace public format): real players' and
+  the Ace robot's serves beside the library's in both plots, marked apart
+  (:mod:`studio.ui.reference`: each serve flown from its measured state after the racket
+  to the net with the project's flight model);
 - the selected serve: joint commands ``u(t)`` of the 8 joints and the predicted ball path
   seen from above (x-y) and from the side (x-z), with the table and the net drawn;
 - "Open in studio": asks a studio running on the same library folder to load the serve
@@ -44,11 +50,12 @@ import panel as pn
 from bokeh.models import ColumnDataSource, NumberFormatter, Range1d
 from bokeh.plotting import figure
 
-from studio.physics.court import DEFAULT_COURT
 from studio.errors import StudioError
-from studio.library.store import INDEX_NAME, LibraryEntry, ServeLibrary
 from studio.library.selection import entry_cluster, net_state, spin_cluster
+from studio.library.store import INDEX_NAME, LibraryEntry, ServeLibrary
+from studio.physics.court import DEFAULT_COURT
 from studio.serve.params import LimitScale
+from studio.ui.reference import HUMAN, ROBOT, ReferenceServes, cached_reference_serves
 
 CLUSTERS = ("topspin", "backspin", "sidespin", "mixed", "no spin", "no net crossing")
 """Spin cluster labels, in legend order."""
@@ -192,14 +199,37 @@ def ball_path_plot(arrays: dict[str, Any], *, view: str) -> Any:
     return fig
 
 
-def spin_scatter(df: pd.DataFrame, *, axes: str = SCATTER_AXES[0], selected_id: str | None = None) -> Any:
-    """Bokeh scatter of the net-crossing state of the rows of ``df``, coloured by cluster."""
+REFERENCE_STYLE = {
+    ROBOT: {"marker": "triangle", "color": "#4a5568", "label": "Ace robot serves (reference)"},
+    HUMAN: {"marker": "square", "color": "#dd6b20", "label": "human serves (reference)"},
+}
+"""How the reference serves are drawn: grey triangles (robot), orange squares (human)."""
+
+
+def _reference_layer(fig: Any, reference: ReferenceServes | None, xy: Any) -> None:
+    """Draw the reference serves (under the library's points) with ``xy(rows) -> (x, y)``."""
+    if reference is None:
+        return
+    for who, style in REFERENCE_STYLE.items():
+        rows = reference.of(who)
+        if not len(rows):
+            continue
+        x, y = xy(rows)
+        src = ColumnDataSource({"x": x, "y": y, "name": [f"{who}: {p} {r}" for p, r in zip(rows["player"], rows["rally"])], "cluster": [f"reference ({who})"] * len(rows),
+                                **{c: rows[c].to_numpy(float) for c in ("speed_h", "spin", "topspin", "sidespin")}})  # fmt: skip
+        fig.scatter("x", "y", source=src, marker=style["marker"], size=7, color=style["color"], alpha=0.45, legend_label=f"{style['label']}: {len(rows)}")
+
+
+def spin_scatter(df: pd.DataFrame, *, axes: str = SCATTER_AXES[0], selected_id: str | None = None, reference: ReferenceServes | None = None) -> Any:
+    """Bokeh scatter of the net-crossing state of the rows of ``df``, coloured by cluster,
+    over the ``reference`` serves (if any)."""
     if axes == SCATTER_AXES[0]:
         xcol, ycol, xl, yl = "speed_h", "spin", "horizontal speed at the net [m/s]", "total spin at the net [rad/s]"
     else:
         xcol, ycol, xl, yl = "topspin", "sidespin", "topspin at the net [rad/s] (< 0: backspin)", "sidespin at the net [rad/s]"
     fig = figure(title=f"ball at the net crossing: {axes}", height=360, sizing_mode="stretch_width", x_axis_label=xl, y_axis_label=yl, tools="pan,wheel_zoom,box_zoom,reset,hover")
     fig.hover.tooltips = [("serve", "@name"), ("cluster", "@cluster"), (xcol, f"@{xcol}{{0.00}}"), (ycol, f"@{ycol}{{0.0}}")]
+    _reference_layer(fig, reference, lambda rows: (rows[xcol].to_numpy(float), rows[ycol].to_numpy(float)))
     ok = df[np.isfinite(df[xcol].to_numpy(dtype=float)) & np.isfinite(df[ycol].to_numpy(dtype=float))]
     for cluster in CLUSTERS:
         sub = ok[ok["cluster"] == cluster]
@@ -210,9 +240,78 @@ def spin_scatter(df: pd.DataFrame, *, axes: str = SCATTER_AXES[0], selected_id: 
         sel = ok[ok["id"] == selected_id]
         if len(sel):
             fig.scatter(sel[xcol].to_numpy(float), sel[ycol].to_numpy(float), size=20, fill_alpha=0.0, line_color="black", line_width=2)
-    if fig.legend:
-        fig.legend.location = "top_left"
+    _legend_outside(fig)
     return fig
+
+
+POLAR_SPOKES = ((0.0, "topspin"), (90.0, "sidespin +"), (180.0, "backspin"), (270.0, "sidespin -"))
+"""Labelled directions of the polar plot [deg from +topspin, counter-clockwise]."""
+
+
+def _polar_grid(fig: Any, r_max: float) -> None:
+    """Rings every 100 rad/s up to ``r_max`` and the labelled spokes."""
+    from bokeh.models import Label
+
+    theta = np.linspace(0.0, 2.0 * np.pi, 181)
+    for r in np.arange(100.0, r_max + 1e-9, 100.0):
+        fig.line(r * np.cos(theta), r * np.sin(theta), color="#cbd5e0", line_width=1)
+        fig.add_layout(Label(x=r * np.cos(np.radians(60)), y=r * np.sin(np.radians(60)), text=f"{r:.0f}", text_font_size="7pt", text_color="#718096"))
+    for deg in np.arange(0.0, 360.0, 45.0):
+        a = np.radians(deg)
+        fig.line([0.0, r_max * np.cos(a)], [0.0, r_max * np.sin(a)], color="#e2e8f0", line_width=1)
+    for deg, text in POLAR_SPOKES:
+        a = np.radians(deg)
+        fig.add_layout(Label(x=1.04 * r_max * np.cos(a), y=1.04 * r_max * np.sin(a), text=text, text_font_size="8pt", text_align="center", text_baseline="middle"))
+
+
+def spin_polar(df: pd.DataFrame, *, selected_id: str | None = None, reference: ReferenceServes | None = None) -> Any:
+    """Polar plot of the spin direction at the net crossing: each serve at angle
+    ``atan2(sidespin, topspin)`` (0 = pure topspin, 90 deg = sidespin > 0, 180 deg =
+    backspin) and radius ``hypot(topspin, sidespin)`` [rad/s] (the spin the receiver sees,
+    without the cork part about the flight direction); the library's serves by cluster
+    colour, the ``reference`` serves marked apart."""
+    fig = figure(title="spin direction at the net: angle atan2(side, top), radius |(top, side)| [rad/s]", height=380, sizing_mode="stretch_width", match_aspect=True,
+                 tools="pan,wheel_zoom,reset,hover", x_axis_label="topspin [rad/s] (< 0: backspin)", y_axis_label="sidespin [rad/s]")  # fmt: skip
+    fig.hover.tooltips = [("serve", "@name"), ("cluster", "@cluster"), ("topspin", "@topspin{0}"), ("sidespin", "@sidespin{0}")]
+    ok = df[np.isfinite(df["topspin"].to_numpy(dtype=float)) & np.isfinite(df["sidespin"].to_numpy(dtype=float))]
+    radii = [np.hypot(ok["topspin"].to_numpy(float), ok["sidespin"].to_numpy(float))]
+    if reference is not None and len(reference.table):
+        radii.append(np.hypot(reference.table["topspin"].to_numpy(float), reference.table["sidespin"].to_numpy(float)))
+    r_max = max(100.0, 100.0 * np.ceil(max((float(r.max()) for r in radii if len(r)), default=100.0) / 100.0))
+    _polar_grid(fig, r_max)
+    _reference_layer(fig, reference, lambda rows: (rows["topspin"].to_numpy(float), rows["sidespin"].to_numpy(float)))
+    for cluster in CLUSTERS:
+        sub = ok[ok["cluster"] == cluster]
+        if len(sub):
+            src = ColumnDataSource({"x": sub["topspin"].to_numpy(float), "y": sub["sidespin"].to_numpy(float), "name": sub["name"].tolist(), "cluster": sub["cluster"].tolist(),
+                                    "topspin": sub["topspin"].to_numpy(float), "sidespin": sub["sidespin"].to_numpy(float)})  # fmt: skip
+            fig.scatter("x", "y", source=src, size=11, color=CLUSTER_COLORS[cluster], legend_label=cluster, alpha=0.85)
+    if selected_id is not None:
+        sel = ok[ok["id"] == selected_id]
+        if len(sel):
+            fig.scatter(sel["topspin"].to_numpy(float), sel["sidespin"].to_numpy(float), size=20, fill_alpha=0.0, line_color="black", line_width=2)
+    fig.scatter([-1.15 * r_max, 1.15 * r_max], [-1.15 * r_max, 1.15 * r_max], alpha=0.0)  # room for the spoke labels (match_aspect keeps the rings round)
+    _legend_outside(fig)
+    return fig
+
+
+def _legend_outside(fig: Any) -> None:
+    """Move the legend to the right of the plot (it hid points in the corner)."""
+    if fig.legend:
+        fig.legend.label_text_font_size = "8pt"
+        fig.legend.click_policy = "hide"
+        fig.add_layout(fig.legend[0], "right")
+
+
+def load_reference(path: str | Path | None) -> tuple[ReferenceServes | None, str]:
+    """The reference serves of a match file and a Markdown line about them (or the error)."""
+    if path is None:
+        return None, ""
+    try:
+        ref = cached_reference_serves(path)
+    except (StudioError, OSError) as err:
+        return None, f"**Cannot read the reference serves:** {_text(str(err))}"
+    return ref, _text(ref.summary()).replace("\\_", "_")
 
 
 def run_folder(entry: LibraryEntry, runs_dir: Path) -> Path | None:
@@ -303,10 +402,13 @@ class LibraryDashboard:
         studio_url: URL of a running studio (``serve-studio app``), linked from the serve view.
         runs_dir: folder holding HEBO run folders (convergence plots); runs named by the
             library outside it are not read.
+        reference: a match file in the Ace public format whose serves are drawn beside
+            the library's (:mod:`studio.ui.reference`); None: none.
     """
 
-    def __init__(self, library_dir: str | Path, *, studio_url: str | None = None, runs_dir: str | Path = "runs") -> None:
+    def __init__(self, library_dir: str | Path, *, studio_url: str | None = None, runs_dir: str | Path = "runs", reference: str | Path | None = None) -> None:
         self.library = ServeLibrary(library_dir)
+        self.reference, reference_text = load_reference(reference)
         self.studio_url = studio_url
         self.runs_dir = Path(runs_dir)
         self.histories: dict[str, Any] = {}
@@ -339,7 +441,9 @@ class LibraryDashboard:
                 **{k: NumberFormatter(format="0.00" if k == "speed_h" else "0") for k in ("speed_h", "spin", "topspin", "sidespin", "cork")},
             },
         )
-        self.scatter = pn.pane.Bokeh(spin_scatter(self.table), sizing_mode="stretch_width")
+        self.scatter = pn.pane.Bokeh(spin_scatter(self.table, reference=self.reference), sizing_mode="stretch_width")
+        self.polar = pn.pane.Bokeh(spin_polar(self.table, reference=self.reference), sizing_mode="stretch_width")
+        self.reference_info = pn.pane.Markdown(reference_text, sizing_mode="stretch_width", visible=bool(reference_text))
         self.detail_title = pn.pane.Markdown("", sizing_mode="stretch_width")
         self.detail_error = pn.pane.Alert("", alert_type="danger", visible=False, sizing_mode="stretch_width")
         self.joints = pn.pane.Bokeh(None, sizing_mode="stretch_width")
@@ -369,7 +473,7 @@ class LibraryDashboard:
             pn.Row(self.side, self.task, self.legal, self.cluster),
             self.tabulator,
             pn.Row(
-                pn.Column(self.axes, self.scatter, sizing_mode="stretch_width"),
+                pn.Column(self.axes, self.scatter, self.polar, self.reference_info, sizing_mode="stretch_width"),
                 pn.Column(self.detail_title, self.detail_error, pn.Row(self.open_button, self.download, self.studio_link, sizing_mode="stretch_width"), self.top_view, self.side_view, sizing_mode="stretch_width"),
                 sizing_mode="stretch_width",
             ),
@@ -449,7 +553,8 @@ class LibraryDashboard:
 
     def _redraw_scatter(self) -> None:
         df = self.filtered()
-        self.scatter.object = spin_scatter(df, axes=self.axes.value, selected_id=self.selected_id)
+        self.scatter.object = spin_scatter(df, axes=self.axes.value, selected_id=self.selected_id, reference=self.reference)
+        self.polar.object = spin_polar(df, selected_id=self.selected_id, reference=self.reference)
         shown = {sid: self.histories[sid] for sid in df["id"] if sid in self.histories}
         self.convergence.object = convergence_plot(shown, names=dict(zip(df["id"], df["name"])), selected_id=self.selected_id)
         self.convergence_info.object = convergence_text(shown, self.run_errors, selected_id=self.selected_id, runs_dir=self.runs_dir)
@@ -525,23 +630,26 @@ class LibraryDashboard:
         return io.StringIO(json.dumps(entry.serve.to_json(), indent=2) + "\n")
 
 
-def build_dashboard(library_dir: str | Path, *, studio_url: str | None = None, runs_dir: str | Path = "runs") -> pn.viewable.Viewable:
+def build_dashboard(library_dir: str | Path, *, studio_url: str | None = None, runs_dir: str | Path = "runs", reference: str | Path | None = None) -> pn.viewable.Viewable:
     """The dashboard layout over ``library_dir`` (for notebooks: display it or ``.servable()``)."""
     pn.extension("tabulator")
-    return LibraryDashboard(library_dir, studio_url=studio_url, runs_dir=runs_dir).layout
+    return LibraryDashboard(library_dir, studio_url=studio_url, runs_dir=runs_dir, reference=reference).layout
 
 
-def run_dashboard(*, library_dir: str | Path, host: str = "127.0.0.1", port: int = 5006, studio_url: str | None = None, runs_dir: str | Path = "runs") -> None:
+def run_dashboard(*, library_dir: str | Path, host: str = "127.0.0.1", port: int = 5006, studio_url: str | None = None, runs_dir: str | Path = "runs", reference: str | Path | None = None) -> None:
     """Serve the dashboard on http://host:port (blocking; localhost only by default).
 
-    Each browser session gets its own dashboard reading ``library_dir``. Pass
-    ``host="0.0.0.0"`` to expose it on purpose (then any origin may connect).
+    Each browser session gets its own dashboard reading ``library_dir`` (the reference
+    serves of ``reference`` are computed once and shared). Pass ``host="0.0.0.0"`` to
+    expose it on purpose (then any origin may connect).
     """
     pn.extension("tabulator")
+    if reference is not None:
+        print(f"serve-studio dashboard: {load_reference(reference)[1]}", flush=True)  # computed once, before the first session
     origins = ["*"] if host in ("0.0.0.0", "::") else [f"{host}:{port}", f"localhost:{port}", f"127.0.0.1:{port}"]
     print(f"serve-studio dashboard: http://{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{port} (library {Path(library_dir)}/{INDEX_NAME})")
     pn.serve(
-        {"/": lambda: LibraryDashboard(library_dir, studio_url=studio_url, runs_dir=runs_dir).layout},
+        {"/": lambda: LibraryDashboard(library_dir, studio_url=studio_url, runs_dir=runs_dir, reference=reference).layout},
         address=host,
         port=port,
         show=False,
