@@ -2,7 +2,7 @@
 
 Targets (fixed seed, documented):
 
-* Start: both default tosses (right, left) of :func:`studio.toss.model.load_default_toss_model`;
+* Start: both default tosses (right, left) of :func:`studio.toss.defaults.load_default_toss_model`;
   the planner takes over at ``t_lift + SWITCH_DELAY`` (``studio.serve.evaluate``, 0.06 s) from
   the toss's command state and predicted joint state.
 * Contact times on the toss clock where the mean ball path is 0-0.5 m above the table
@@ -47,10 +47,11 @@ import time
 import numpy as np
 
 from studio.serve.evaluate import SWITCH_DELAY  # [s] planner take-over after the lift, as in evaluations
-from studio.planning.planner import StrikePlanner, StrikeStart, StrikeTarget
+from studio.planning.planner import StrikePlanner
+from studio.planning.strike import StrikeStart, StrikeTarget
 from studio.robot.model import load_robot
 from studio.serve.params import racket_normal
-from studio.toss.model import load_default_toss_model
+from studio.toss.defaults import load_default_toss_model
 
 
 def ik(robot, q0, p, n, iters=60):  # type: ignore[no-untyped-def]

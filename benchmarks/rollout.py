@@ -27,9 +27,11 @@ from collections.abc import Callable
 import numpy as np
 
 from studio.physics import ball as B
-from studio.toss import model as T
+from studio.toss import synthesis as T
 from studio.robot.model import load_robot
-from studio.sim.rollout import RolloutOptions, RolloutResult, build_scene, rollout
+from studio.sim.options import RolloutOptions
+from studio.sim.rollout import RolloutResult, rollout
+from studio.sim.scene import build_scene
 
 DT = 1e-3
 

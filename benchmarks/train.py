@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from studio.optimize.optimizer import EvaluatorPool, HeboConfig, bounds_for_toss, optimize_serve  # noqa: E402
 from studio.serve.params import LimitScale, load_serve  # noqa: E402
-from studio.toss.model import load_default_toss_model  # noqa: E402
+from studio.toss.defaults import load_default_toss_model  # noqa: E402
 
 Trace = list[tuple[int, float, float]]
 """(evaluations done, seconds since start, best reward so far)."""

@@ -20,10 +20,12 @@ import numpy as np
 
 from studio.robot.collision import CollisionChecker
 from studio.serve.evaluate import SWITCH_DELAY, strike_target
-from studio.planning.planner import Plan, StrikePlanner, StrikeTarget, start_from_toss
+from studio.planning.planner import StrikePlanner
+from studio.planning.serve_plan import start_from_toss
+from studio.planning.strike import Plan, StrikeTarget
 from studio.robot.model import load_robot
 from studio.serve.params import load_serve
-from studio.toss.model import load_default_toss_model
+from studio.toss.defaults import load_default_toss_model
 
 DEFAULT_SERVE = Path(__file__).resolve().parent / "serves" / "topspin_right.json"
 SPEED_SCALES = (0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0)

@@ -45,11 +45,11 @@ _API: dict[str, str] = {
     "load_robot": "studio.robot.model",
     # toss
     "TossModel": "studio.toss.model",
-    "load_default_toss_model": "studio.toss.model",
+    "load_default_toss_model": "studio.toss.defaults",
     # planning and simulation
     "StrikePlanner": "studio.planning.planner",
-    "StrikeTarget": "studio.planning.planner",
-    "plan_serve": "studio.planning.planner",
+    "StrikeTarget": "studio.planning.strike",
+    "plan_serve": "studio.planning.serve_plan",
     "rollout": "studio.sim.rollout",
     # serves and their evaluation
     "HandServe": "studio.serve.params",
@@ -84,13 +84,16 @@ if TYPE_CHECKING:
     from studio.optimize.robust import robustify_serve
     from studio.optimize.training import TrainConfig, train_serves
     from studio.physics.ball import BallState, FlightModel, RacketModel, TableBounceModel, simulate, spin_components
-    from studio.planning.planner import StrikePlanner, StrikeTarget, plan_serve
+    from studio.planning.planner import StrikePlanner
+    from studio.planning.serve_plan import plan_serve
+    from studio.planning.strike import StrikeTarget
     from studio.robot.model import Robot, load_robot
     from studio.serve.efforts import EffortLimitError, effort_report
     from studio.serve.evaluate import Evaluation, EvaluationContext, evaluate_robust, evaluate_serve
     from studio.serve.params import HandServe, LimitScale, ServeParams, load_serve, save_serve
     from studio.sim.rollout import rollout
-    from studio.toss.model import TossModel, load_default_toss_model
+    from studio.toss.defaults import load_default_toss_model
+    from studio.toss.model import TossModel
 
 
 def __getattr__(name: str) -> Any:

@@ -7,7 +7,8 @@ import pytest
 
 from studio.robot.collision import CollisionChecker
 from studio.errors import InvalidInputError
-from studio.planning.planner import StrikePlanner, StrikeStart, StrikeTarget
+from studio.planning.planner import StrikePlanner
+from studio.planning.strike import StrikeStart, StrikeTarget
 from studio.robot.model import load_robot
 
 

@@ -193,7 +193,7 @@ def test_a_static_tilt_gives_its_tangent(robot: Robot) -> None:
 
 
 def test_preparation_from_a_pose_tilted_beyond_the_cone_is_refused(robot: Robot) -> None:
-    from studio.planning.planner import preparation_phase
+    from studio.planning.preparation import preparation_phase
 
     tilted = robot.q_flat + np.array([0, 0, 0, 0, 0, 0, 0.8, 0])  # 46 deg: the ball cannot sit there
     with pytest.raises(InvalidInputError, match="does not stay in the cup"):
@@ -234,7 +234,7 @@ def test_mujoco_ball_stays_in_the_cup_through_preparation_and_toss(robot: Robot,
 def test_mujoco_throws_the_ball_out_with_the_former_preparation(robot: Robot) -> None:
     """Negative control: the quintic the joint limits alone allowed (0.331 s) breaks the cone
     (ratio ~2) and the same MuJoCo model loses the ball (the issue: it leaves at ~0.18 s)."""
-    from studio.toss.model import load_default_toss_model
+    from studio.toss.defaults import load_default_toss_model
 
     q = _limits_only_preparation(robot, load_default_toss_model("right", robot).primitive.u[0])
     ratio, _ = _ratio_from_positions(robot, q)

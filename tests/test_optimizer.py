@@ -57,7 +57,7 @@ def read_log(run_dir: Path) -> list[dict]:
 
 
 def test_bounds_for_toss_spans_falling_ball_to_5cm_above_table() -> None:
-    from studio.toss.model import load_default_toss_model
+    from studio.toss.defaults import load_default_toss_model
 
     toss = load_default_toss_model("right")
     b = bounds_for_toss(toss)

@@ -1,4 +1,4 @@
-"""Strike motion planner (studio.planning.planner): constraints, tolerances, limits, continuity."""
+"""Strike motion planner (studio.planning): constraints, tolerances, limits, continuity."""
 
 from __future__ import annotations
 
@@ -8,12 +8,9 @@ import numpy as np
 import pytest
 
 from studio.errors import InvalidInputError
-from studio.planning.planner import (
-    StrikePlanner,
-    StrikeStart,
-    StrikeTarget,
-    chain_transition,
-)
+from studio.planning.chain import chain_transition
+from studio.planning.planner import StrikePlanner
+from studio.planning.strike import StrikeStart, StrikeTarget
 from studio.robot.model import JointDynamics, load_robot
 
 DT = 1e-3
@@ -189,8 +186,8 @@ def test_nan_inputs_raise_naming_the_field(start) -> None:  # type: ignore[no-un
 
 
 def test_plan_serve_is_one_continuous_trajectory(robot, planner) -> None:  # type: ignore[no-untyped-def]
-    from studio.planning.planner import plan_serve
-    from studio.toss.model import make_toss
+    from studio.planning.serve_plan import plan_serve
+    from studio.toss.synthesis import make_toss
 
     toss = make_toss(robot, "right")
     t_sw = toss.release.time + 0.02
@@ -219,7 +216,7 @@ def test_plan_serve_is_one_continuous_trajectory(robot, planner) -> None:  # typ
 
 
 def test_settle_hold_is_the_shortest_hold_to_rest(robot) -> None:  # type: ignore[no-untyped-def]
-    from studio.planning.planner import SETTLE, SettleTolerance, settle_hold
+    from studio.planning.settle import SETTLE, SettleTolerance, settle_hold
 
     X0 = np.stack([robot.q_rest - 0.012, np.full(8, 0.4)], axis=1)  # the return's end: short and moving
     S = settle_hold(robot.q_rest, X0, robot.dynamics)
@@ -241,9 +238,9 @@ def test_settle_hold_is_the_shortest_hold_to_rest(robot) -> None:  # type: ignor
 
 
 def test_preparation_keeps_the_ball_in_the_cup_within_the_limits(robot) -> None:  # type: ignore[no-untyped-def]
+    from studio.planning.preparation import cup_check, held_quintic, preparation_phase
     from studio.robot.cup_hold import CupGrip
-    from studio.planning.planner import _cup_check, _held_quintic, preparation_phase
-    from studio.toss.model import load_default_toss_model
+    from studio.toss.defaults import load_default_toss_model
 
     u0 = load_default_toss_model("right", robot).primitive.u[0]
     prep = preparation_phase(robot, u0)
@@ -254,7 +251,7 @@ def test_preparation_keeps_the_ball_in_the_cup_within_the_limits(robot) -> None:
     # the shortest on the 1 ms grid (the limits alone allowed 0.331 s, which breaks the cone)
     assert 0.4 < prep.motion_time < 0.7 and prep.duration == pytest.approx(prep.motion_time + 0.3)
     grip = CupGrip.of(robot)
-    shorter = _held_quintic(robot, robot.q_flat, u0, prep.motion_time - 0.002, 300, DT)
-    assert not _cup_check(robot, shorter, DT, grip).passed
+    shorter = held_quintic(robot, robot.q_flat, u0, prep.motion_time - 0.002, 300, DT)
+    assert not cup_check(robot, shorter, DT, grip).passed
     looser = preparation_phase(robot, u0, grip=CupGrip(grip.geometric, safety_factor=1.0))
     assert looser.cup is not None and looser.cup.passed and looser.motion_time < prep.motion_time

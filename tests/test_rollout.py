@@ -8,13 +8,19 @@ import mujoco
 import numpy as np
 import pytest
 
-from studio.physics import ball as B
 from studio import constants as C
-from studio.toss import model as T
 from studio.errors import InvalidInputError
-from studio.robot.model import load_robot
+from studio.physics import ball as B
 from studio.robot.description import BALL_CUP_FRAME
-from studio.sim.rollout import RolloutOptions, build_scene, rollout
+from studio.robot.model import load_robot
+from studio.sim.options import RolloutOptions
+from studio.sim.rollout import rollout
+from studio.sim.scene import build_scene
+from studio.toss.defaults import load_default_toss_model
+from studio.toss.primitive import TOSS_SIDES
+from studio.toss.release import find_release
+from studio.toss.synthesis import make_toss
+from studio.toss.synthetic import nominal_ball_path
 
 DT = 1e-3
 
@@ -291,7 +297,7 @@ def test_vertical_toss_release_and_apex(robot, scene) -> None:
     # the toss model on the same motion, with pinocchio's kinematics
     cup = np.array([robot.cup_position(q) for q in X[:, :, 0]])
     rot = np.array([robot.fk(q).rotation for q in X[:, :, 0]])
-    rel = T.find_release(t, cup, rot[:, :, 2], rotation=rot)
+    rel = find_release(t, cup, rot[:, :, 2], rotation=rot)
     assert rel is not None and res.release is not None
     assert res.release_t == pytest.approx(rel.time, abs=1e-6)
     assert 0.30 < rel.time < 0.40  # during the deceleration phase
@@ -312,10 +318,10 @@ def test_vertical_toss_release_and_apex(robot, scene) -> None:
 
 
 def test_make_toss_release_matches_primitive(robot, scene) -> None:
-    prim = T.make_toss(robot, "right")
+    prim = make_toss(robot, "right")
     res = rollout(scene, t=prim.t, u=prim.u, X0=prim.X[0], ball="cup")
     assert res.release_t == pytest.approx(prim.release.time, abs=1e-6)
-    tn, pn, _ = T.nominal_ball_path(prim)
+    tn, pn, _ = nominal_ball_path(prim)
     first = res.contacts[0].t if res.contacts else math.inf
     m = min(len(tn), int(np.searchsorted(res.t, first)))
     np.testing.assert_allclose(res.p[:m], pn[:m], atol=1e-3)
@@ -325,11 +331,11 @@ def test_make_toss_release_matches_primitive(robot, scene) -> None:
     np.testing.assert_allclose(early.p, prim.cup_p[: early.t.size], atol=1e-9)
 
 
-@pytest.mark.parametrize("side", T.TOSS_SIDES)
+@pytest.mark.parametrize("side", TOSS_SIDES)
 def test_default_toss_ball_flies_free_of_the_robot(scene, side) -> None:
     """The shipped toss: the ball leaves the cup when the toss module says, rises and
     falls back past the racket (which steps aside and down) without touching anything."""
-    model = T.load_default_toss_model(side)
+    model = load_default_toss_model(side)
     prim = model.primitive
     t_rel = prim.release.time
     res = rollout(scene, t=prim.t, u=prim.u, X0=prim.X[0], ball="cup", t_end=t_rel + 1.0)

@@ -1,4 +1,4 @@
-"""Tests of studio.toss.model: release model, toss primitive, synthetic recordings, toss model, CSV."""
+"""Tests of studio.toss: release model, toss primitive, synthetic recordings, toss model, CSV."""
 
 from __future__ import annotations
 
@@ -8,11 +8,34 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from studio.physics import ball
 from studio import constants as C
-from studio.toss import model as T
 from studio.errors import DataFileError, InvalidInputError
+from studio.physics import ball
 from studio.robot.model import Robot, load_robot
+from studio.toss.checks import limit_violations
+from studio.toss.defaults import (
+    DEFAULT_N_TOSSES,
+    default_recordings_path,
+    generate_default_recordings,
+    load_default_toss_model,
+)
+from studio.toss.design import ClearMove, TossDesign
+from studio.toss.flight import free_flights, hermite_interpolate, vertical_rise
+from studio.toss.lift_profile import LiftProfile, LiftShape
+from studio.toss.local_fit import local_fit_state
+from studio.toss.model import TossModel
+from studio.toss.noise import TossNoise
+from studio.toss.primitive import TOSS_SIDES, TossPrimitive, TossSide
+from studio.toss.recordings import (
+    TossRecording,
+    TossRecordings,
+    load_recordings_csv,
+    save_recordings_csv,
+)
+from studio.toss.release import contact_margin, find_release
+from studio.toss.report import toss_report
+from studio.toss.synthesis import make_toss
+from studio.toss.synthetic import nominal_ball_path, simulate_tosses
 
 END_LINE_X = -C.TABLE_LENGTH / 2
 
@@ -23,18 +46,18 @@ def robot() -> Robot:
 
 
 @pytest.fixture(scope="module")
-def right(robot: Robot) -> T.TossPrimitive:
-    return T.make_toss(robot, "right")
+def right(robot: Robot) -> TossPrimitive:
+    return make_toss(robot, "right")
 
 
 @pytest.fixture(scope="module")
-def left(robot: Robot) -> T.TossPrimitive:
-    return T.make_toss(robot, "left")
+def left(robot: Robot) -> TossPrimitive:
+    return make_toss(robot, "left")
 
 
 @pytest.fixture(scope="module")
-def nominal(right: T.TossPrimitive) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return T.nominal_ball_path(right, end_height=T.TossNoise().end_height)
+def nominal(right: TossPrimitive) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return nominal_ball_path(right, end_height=TossNoise().end_height)
 
 
 # ------------------------------------------------------------------------------------
@@ -48,7 +71,7 @@ def test_find_release_matches_analytic_crossing() -> None:
     t = np.arange(0.0, 0.3, 1e-3)
     p = np.stack([np.zeros_like(t), np.zeros_like(t), -A * np.cos(w * t)], axis=1)
     n = np.tile([0.0, 0.0, 1.0], (t.size, 1))
-    rel = T.find_release(t, p, n, drag_k=0.0)
+    rel = find_release(t, p, n, drag_k=0.0)
     assert rel is not None
     t_true = math.acos(-C.GRAVITY / (A * w * w)) / w
     assert rel.time == pytest.approx(t_true, abs=2e-6)
@@ -59,12 +82,12 @@ def test_find_release_matches_analytic_crossing() -> None:
     assert rel.sideways_acceleration == pytest.approx(0.0, abs=1e-9)
     # With the exact acceleration given, the crossing is the same.
     a = np.stack([np.zeros_like(t), np.zeros_like(t), A * w * w * np.cos(w * t)], axis=1)
-    rel2 = T.find_release(t, p, n, cup_a=a, drag_k=0.0)
+    rel2 = find_release(t, p, n, cup_a=a, drag_k=0.0)
     assert rel2 is not None and rel2.time == pytest.approx(t_true, abs=1e-6)
     # Air drag presses the rising ball into the cup: it leaves when the cup decelerates
     # at g + k v^2 (k v^2 = 0.3 m/s^2 here), a little later.
     k = 0.15
-    rel_d = T.find_release(t, p, n, drag_k=k)
+    rel_d = find_release(t, p, n, drag_k=k)
     assert rel_d is not None and rel_d.time > rel.time
     # Exact crossing of (a + g + k v^2) with a = A w^2 cos(w t), v = A w sin(w t).
     lo, hi = t_true, 0.2
@@ -74,15 +97,15 @@ def test_find_release_matches_analytic_crossing() -> None:
         lo, hi = (mid, hi) if f > 0.0 else (lo, mid)
     assert rel_d.time == pytest.approx(lo, abs=5e-6)
     assert lo - t_true > 5e-4
-    assert T.find_release(t, p, n).time == pytest.approx(  # type: ignore[union-attr]
-        T.find_release(t, p, n, drag_k=ball.DEFAULT_FLIGHT.drag_constant).time, abs=1e-12  # type: ignore[union-attr]
+    assert find_release(t, p, n).time == pytest.approx(  # type: ignore[union-attr]
+        find_release(t, p, n, drag_k=ball.DEFAULT_FLIGHT.drag_constant).time, abs=1e-12  # type: ignore[union-attr]
     )
     # A cup that also accelerates sideways (3 m/s^2 along x) releases at the same
     # instant (only the normal force counts) and reports the sideways push the model
     # assumes away.
     p3 = p.copy()
     p3[:, 0] = 1.5 * t**2
-    rel3 = T.find_release(t, p3, n, drag_k=0.0)
+    rel3 = find_release(t, p3, n, drag_k=0.0)
     assert rel3 is not None and rel3.time == pytest.approx(t_true, abs=2e-6)
     assert rel3.sideways_acceleration == pytest.approx(3.0, abs=1e-6)
     assert rel3.horizontal_acceleration == pytest.approx(3.0, abs=1e-6)
@@ -92,23 +115,23 @@ def test_find_release_tilted_normal_and_no_release() -> None:
     t = np.arange(0.0, 0.5, 1e-3)
     # Cup at rest, normal tilted 30 deg: gravity still pushes the ball into the cup.
     n = np.tile([math.sin(0.5), 0.0, math.cos(0.5)], (t.size, 1))
-    assert T.find_release(t, np.zeros((t.size, 3)), n) is None
+    assert find_release(t, np.zeros((t.size, 3)), n) is None
     # A sideways acceleration of 20 m/s^2 against a 30 deg tilted normal lifts the ball:
     # (a + g) . n = -20 sin 30 + 9.81 cos 30 = -1.5 < 0 from the start.
     p = np.stack([-10.0 * t**2, np.zeros_like(t), np.zeros_like(t)], axis=1)
-    rel = T.find_release(t, p, n)
+    rel = find_release(t, p, n)
     assert rel is not None and rel.index == 0 and rel.time == 0.0
-    assert T.contact_margin(np.array([-20.0, 0.0, 0.0]), n[0]) == pytest.approx(-20 * math.sin(0.5) + 9.81 * math.cos(0.5))
+    assert contact_margin(np.array([-20.0, 0.0, 0.0]), n[0]) == pytest.approx(-20 * math.sin(0.5) + 9.81 * math.cos(0.5))
     with pytest.raises(InvalidInputError):
-        T.find_release(t[:2], p[:2], n[:2])
+        find_release(t[:2], p[:2], n[:2])
     with pytest.raises(InvalidInputError):
-        T.find_release(t[::-1], p, n)
+        find_release(t[::-1], p, n)
     with pytest.raises(InvalidInputError):
-        T.find_release(t, p, np.zeros_like(n))
+        find_release(t, p, np.zeros_like(n))
 
 
 def test_lift_profile_is_smooth_and_stops() -> None:
-    prof = T.LiftProfile.design(2.8, lift_acceleration=18.0, ramp_up=0.2, ramp_release=0.15, ramp_stop=0.22, hold_start=0.05)
+    prof = LiftProfile.design(2.8, LiftShape(lift_acceleration=18.0, ramp_up=0.2, ramp_release=0.15, ramp_stop=0.22, hold_start=0.05))
     dt = 1e-4
     t = np.arange(0.0, prof.duration + 0.1, dt)
     d = prof.evaluate(t)
@@ -130,7 +153,7 @@ def test_lift_profile_is_smooth_and_stops() -> None:
 # ------------------------------------------------------------------------------------
 
 
-def test_toss_rises_vertically_without_spin(right: T.TossPrimitive, nominal: tuple[np.ndarray, ...]) -> None:
+def test_toss_rises_vertically_without_spin(right: TossPrimitive, nominal: tuple[np.ndarray, ...]) -> None:
     rel = right.release
     # Released near vertically (designed: exactly) and without spin (racket does not turn).
     assert rel.horizontal_speed < 0.005
@@ -143,7 +166,7 @@ def test_toss_rises_vertically_without_spin(right: T.TossPrimitive, nominal: tup
     assert rise == pytest.approx(0.35, abs=2e-3)
     # The analytic drag formula agrees with the integrated flight.
     k = ball.DEFAULT_FLIGHT.drag_constant
-    assert T.vertical_rise(float(rel.velocity[2]), drag_k=k) == pytest.approx(rise, abs=5e-4)
+    assert vertical_rise(float(rel.velocity[2]), drag_k=k) == pytest.approx(rise, abs=5e-4)
     # Cross-check of the toss flight against studio.physics.ball.simulate (before any contact).
     traj = ball.simulate(ball.BallState(rel.position, rel.velocity, np.zeros(3)), 0.6, t0=rel.time, dt_out=1e-3)
     z_sim = np.interp(tn[tn > rel.time + 0.01], traj.t, traj.p[:, 2], right=np.nan)
@@ -158,7 +181,7 @@ def test_toss_rises_vertically_without_spin(right: T.TossPrimitive, nominal: tup
     assert tn[np.argmax((pn[:, 2] < 0.0) & (tn > rel.time))] - rel.time > 0.6
 
 
-def test_cup_rises_on_a_vertical_line_without_sideways_push(right: T.TossPrimitive, left: T.TossPrimitive) -> None:
+def test_cup_rises_on_a_vertical_line_without_sideways_push(right: TossPrimitive, left: TossPrimitive) -> None:
     for prim in (right, left):
         rel = prim.release
         # At the release: no horizontal speed (< 2 cm/s) and no horizontal cup
@@ -180,11 +203,11 @@ def test_cup_rises_on_a_vertical_line_without_sideways_push(right: T.TossPrimiti
         assert np.ptp(prim.q[until, 0]) > 0.1
 
 
-def test_racket_clears_the_falling_ball(robot: Robot, right: T.TossPrimitive, left: T.TossPrimitive) -> None:
+def test_racket_clears_the_falling_ball(robot: Robot, right: TossPrimitive, left: TossPrimitive) -> None:
     spec = robot.spec.racket
     for prim, sign in ((right, -1.0), (left, 1.0)):
         rel = prim.release
-        tn, pn, _ = T.nominal_ball_path(prim, end_height=0.0)
+        tn, pn, _ = nominal_ball_path(prim, end_height=0.0)
         cup = prim.cup_p[: tn.size]
         after = tn > rel.time
         # The ball rises out of the cup before the racket moves sideways (gantry Y).
@@ -204,13 +227,13 @@ def test_racket_clears_the_falling_ball(robot: Robot, right: T.TossPrimitive, le
         gap = np.hypot(pn[band, 0] - cup[band, 0], pn[band, 1] - cup[band, 1])
         assert np.min(gap) > spec.ball_radius + spec.cup_plate_radius + 0.01
     # Too small a side step or too early a start are refused.
-    with pytest.raises(InvalidInputError, match="clear_side"):
-        T.make_toss(robot, "right", clear_side=0.03)
-    with pytest.raises(InvalidInputError, match="clear_delay"):
-        T.make_toss(robot, "right", clear_delay=0.0)
+    with pytest.raises(InvalidInputError, match=r"ClearMove\.side"):
+        make_toss(robot, "right", TossDesign(clear=ClearMove(side=0.03)))
+    with pytest.raises(InvalidInputError, match=r"ClearMove\.delay"):
+        make_toss(robot, "right", TossDesign(clear=ClearMove(delay=0.0)))
 
 
-def test_racket_flat_during_lift(right: T.TossPrimitive) -> None:
+def test_racket_flat_during_lift(right: TossPrimitive) -> None:
     lift = right.t <= right.release.time
     tilt = np.degrees(np.arccos(np.clip(right.cup_normal[lift, 2], -1.0, 1.0)))
     assert np.max(tilt) < 0.01  # the lift keeps the racket exactly flat (< 2 deg required)
@@ -219,7 +242,7 @@ def test_racket_flat_during_lift(right: T.TossPrimitive) -> None:
     assert 0.25 < right.release.position[2] - right.cup_p[0, 2] < 0.45
 
 
-def test_primitive_within_joint_limits_and_continuous(robot: Robot, right: T.TossPrimitive) -> None:
+def test_primitive_within_joint_limits_and_continuous(robot: Robot, right: TossPrimitive) -> None:
     lim = robot.limits
     u, dt = right.u, right.dt
     assert right.t[-1] >= 1.2 and dt == 1e-3
@@ -235,7 +258,7 @@ def test_primitive_within_joint_limits_and_continuous(robot: Robot, right: T.Tos
     # The exact derivatives agree with the samples and are within limits with margin.
     assert np.max(np.abs(v - 0.5 * (right.ud[1:] + right.ud[:-1]))) < 1e-4
     assert np.max(np.abs(right.uddd) / lim.jerk) < 0.95
-    assert T.limit_violations(right.u, right.ud, right.udd, right.uddd, lim, q=right.q) == []
+    assert limit_violations(right.u, right.ud, right.udd, right.uddd, lim, q=right.q) == []
     # Continuity up to acceleration: sample-to-sample jumps bounded by the jerk limit.
     assert np.all(np.max(np.abs(np.diff(right.udd, axis=0)), axis=0) <= lim.jerk * dt * 1.001)
     # Starts and ends at rest; the gantry Y axis only moves after the release.
@@ -249,14 +272,14 @@ def test_primitive_within_joint_limits_and_continuous(robot: Robot, right: T.Tos
 
 def test_too_high_toss_is_rejected(robot: Robot) -> None:
     with pytest.raises(InvalidInputError, match="release height|joint limits"):
-        T.make_toss(robot, "right", rise=0.6)
+        make_toss(robot, "right", TossDesign(rise=0.6))
     with pytest.raises(InvalidInputError, match="side"):
-        T.make_toss(robot, "middle")  # type: ignore[arg-type]
+        make_toss(robot, "middle")  # type: ignore[arg-type]
     with pytest.raises(InvalidInputError, match="rise"):
-        T.make_toss(robot, "right", rise=0.1)
+        make_toss(robot, "right", TossDesign(rise=0.1))
 
 
-def test_left_and_right_tosses_mirror(right: T.TossPrimitive, left: T.TossPrimitive) -> None:
+def test_left_and_right_tosses_mirror(right: TossPrimitive, left: TossPrimitive) -> None:
     r, l = right.release, left.release
     assert r.position[1] == pytest.approx(-0.30, abs=1e-9)
     assert l.position[1] == pytest.approx(0.30, abs=1e-9)
@@ -273,11 +296,11 @@ def test_left_and_right_tosses_mirror(right: T.TossPrimitive, left: T.TossPrimit
 
 
 def test_model_recovers_truth_with_measurement_noise_only(
-    robot: Robot, right: T.TossPrimitive, nominal: tuple[np.ndarray, ...]
+    robot: Robot, right: TossPrimitive, nominal: tuple[np.ndarray, ...]
 ) -> None:
-    noise = T.TossNoise(vibration=0.0, release_jitter=0.0, wind=0.0, wind_vertical=0.0)
-    recs = T.simulate_tosses(robot, right, 15, np.random.default_rng(5), noise=noise)
-    model = T.TossModel.from_recordings(right, recs)
+    noise = TossNoise(vibration=0.0, release_jitter=0.0, wind=0.0, wind_vertical=0.0)
+    recs = simulate_tosses(robot, right, 15, np.random.default_rng(5), noise=noise)
+    model = TossModel.from_recordings(right, recs)
     assert model.t_lift == pytest.approx(right.release.time, abs=1e-3)
     tn, pn, _ = nominal
     sel = model.t <= tn[-1]
@@ -290,9 +313,9 @@ def test_model_recovers_truth_with_measurement_noise_only(
     assert model.lift_fit_rms == pytest.approx(noise.measurement, rel=0.15)
 
 
-def test_model_with_default_noise(robot: Robot, right: T.TossPrimitive) -> None:
-    noise = T.TossNoise()
-    recs = T.simulate_tosses(robot, right, 15, np.random.default_rng(11), noise=noise)
+def test_model_with_default_noise(robot: Robot, right: TossPrimitive) -> None:
+    noise = TossNoise()
+    recs = simulate_tosses(robot, right, 15, np.random.default_rng(11), noise=noise)
     assert recs.truth is not None
     # Recordings: camera rate, random phases and clocks, ball seen in the cup first.
     for rec, tr in zip(recs.recordings, recs.truth):
@@ -301,13 +324,13 @@ def test_model_with_default_noise(robot: Robot, right: T.TossPrimitive) -> None:
         assert rec.p[-1, 2] >= noise.end_height - 0.05
     # Every toss leaves near vertically (vibration and jitter included).
     assert max(float(np.hypot(*tr.release_v[:2])) for tr in recs.truth) < 0.05
-    model = T.TossModel.from_recordings(right, recs)
+    model = TossModel.from_recordings(right, recs)
     t_true = float(np.mean([tr.release_time for tr in recs.truth]))
     assert model.t_lift == pytest.approx(t_true, abs=3e-3)
     # Mean path vs the mean of the true (noise-free) paths of the same tosses.
     flight = model.t > max(tr.release_time for tr in recs.truth) + 0.02
     tq = model.t[flight]
-    FT, FP, FV = T._free_flights(
+    FT, FP, FV = free_flights(
         np.array([tr.release_p for tr in recs.truth]),
         np.array([tr.release_v for tr in recs.truth]),
         np.array([tr.release_time for tr in recs.truth]),
@@ -316,7 +339,7 @@ def test_model_with_default_noise(robot: Robot, right: T.TossPrimitive) -> None:
         wind=np.array([tr.wind for tr in recs.truth]),
         h=1e-3,
     )
-    true_paths = [T._hermite(FT[k], FP[k], FV[k], tq) for k in range(len(recs))]
+    true_paths = [hermite_interpolate(FT[k], FP[k], FV[k], tq) for k in range(len(recs))]
     err = np.linalg.norm(model.p[flight] - np.mean(true_paths, axis=0), axis=1)
     assert np.max(err) < 3e-3
     # Spread 0.7 s after the lift: about +/-1 cm (paper, 15 tosses).
@@ -327,9 +350,9 @@ def test_model_with_default_noise(robot: Robot, right: T.TossPrimitive) -> None:
     assert model.spread_norm[-1] > 3 * model.spread_norm[np.searchsorted(model.t, model.t_lift + 0.05)]
 
 
-def test_model_states_and_sampling(robot: Robot, right: T.TossPrimitive) -> None:
-    recs = T.simulate_tosses(robot, right, 12, np.random.default_rng(3))
-    model = T.TossModel.from_recordings(right, recs)
+def test_model_states_and_sampling(robot: Robot, right: TossPrimitive) -> None:
+    recs = simulate_tosses(robot, right, 12, np.random.default_rng(3))
+    model = TossModel.from_recordings(right, recs)
     tq = model.t_lift + 0.5
     mean = model.mean_state(tq)
     assert np.array_equal(mean.w, np.zeros(3))
@@ -360,13 +383,13 @@ def test_model_states_and_sampling(robot: Robot, right: T.TossPrimitive) -> None
         model.sample(tq, rng, method="other")  # type: ignore[arg-type]
 
 
-def test_unalignable_recording_is_rejected(robot: Robot, right: T.TossPrimitive) -> None:
-    recs = T.simulate_tosses(robot, right, 3, np.random.default_rng(1))
+def test_unalignable_recording_is_rejected(robot: Robot, right: TossPrimitive) -> None:
+    recs = simulate_tosses(robot, right, 3, np.random.default_rng(1))
     cut = recs.recordings[0]
     late = cut.t > cut.t[0] + 0.4  # drop the in-cup part of the recording
-    bad = T.TossRecordings((T.TossRecording(cut.toss_id, cut.t[late], cut.p[late]), *recs.recordings[1:]))
+    bad = TossRecordings((TossRecording(cut.toss_id, cut.t[late], cut.p[late]), *recs.recordings[1:]))
     with pytest.raises(InvalidInputError, match="in the cup"):
-        T.TossModel.from_recordings(right, bad)
+        TossModel.from_recordings(right, bad)
 
 
 # ------------------------------------------------------------------------------------
@@ -374,17 +397,17 @@ def test_unalignable_recording_is_rejected(robot: Robot, right: T.TossPrimitive)
 # ------------------------------------------------------------------------------------
 
 
-def test_csv_round_trip(robot: Robot, right: T.TossPrimitive, tmp_path: Path) -> None:
-    recs = T.simulate_tosses(robot, right, 3, np.random.default_rng(2))
+def test_csv_round_trip(robot: Robot, right: TossPrimitive, tmp_path: Path) -> None:
+    recs = simulate_tosses(robot, right, 3, np.random.default_rng(2))
     path = tmp_path / "tosses.csv"
-    T.save_recordings_csv(path, recs, comment="test data\nsecond line")
-    back = T.load_recordings_csv(path)
+    save_recordings_csv(path, recs, comment="test data\nsecond line")
+    back = load_recordings_csv(path)
     assert [r.toss_id for r in back.recordings] == [r.toss_id for r in recs.recordings]
     for a, b in zip(recs.recordings, back.recordings):
         assert np.allclose(a.t, b.t, atol=5e-7, rtol=0) and np.allclose(a.p, b.p, atol=5e-7, rtol=0)
     assert back.truth is None
-    T.save_recordings_csv(path, recs, decimals=4)
-    back4 = T.load_recordings_csv(path)
+    save_recordings_csv(path, recs, decimals=4)
+    back4 = load_recordings_csv(path)
     assert np.allclose(back4.recordings[1].p, recs.recordings[1].p, atol=5e-5, rtol=0)
 
 
@@ -413,7 +436,7 @@ def test_bad_csv_rejected_with_file_and_line(tmp_path: Path, lines: list[str], m
     path = tmp_path / "bad_tosses.csv"
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     with pytest.raises(DataFileError, match=match) as info:
-        T.load_recordings_csv(path)
+        load_recordings_csv(path)
     assert "bad_tosses.csv" in str(info.value)
 
 
@@ -426,7 +449,7 @@ def test_csv_extra_columns_comments_and_interleaved_tosses(tmp_path: Path) -> No
             lines.append(",".join(["0.9", z, y, x, t, tid]))
     path = tmp_path / "ok.csv"
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    recs = T.load_recordings_csv(path)
+    recs = load_recordings_csv(path)
     assert [r.toss_id for r in recs.recordings] == ["a", "b"]
     assert recs.recordings[1].t[0] == pytest.approx(100.0)
     assert recs.recordings[0].p[3] == pytest.approx([-1.6, 0.3, 0.13])
@@ -461,18 +484,18 @@ def _rising_crossing(t: np.ndarray, z: np.ndarray, z_cross: float) -> float:
     return float(roots[np.argmin(np.abs(roots - np.mean(t[band])))])
 
 
-def _recorded_positions_at(side: T.TossSide, taus: tuple[float, ...]) -> np.ndarray:
-    """Independent of studio.toss.model's estimators: each shipped recording of ``side`` put on
+def _recorded_positions_at(side: TossSide, taus: tuple[float, ...]) -> np.ndarray:
+    """Independent of studio.toss's estimators: each shipped recording of ``side`` put on
     the command clock by its in-cup crossing of z = 0.21 m (against the primitive's
     predicted cup height), then a quadratic fitted to its samples within +/-30 ms of each
     tau: positions (K, len(taus), 3) [m]."""
-    model = T.load_default_toss_model(side)
+    model = load_default_toss_model(side)
     cup_t, cup_z = model.primitive.t, model.primitive.cup_p[:, 2]
     z_cross = 0.21
     i = int(np.argmax(cup_z >= z_cross))
     t_nom = cup_t[i - 1] + (z_cross - cup_z[i - 1]) / (cup_z[i] - cup_z[i - 1]) * (cup_t[i] - cup_t[i - 1])
     out = []
-    for t, p in _csv_tosses(T.default_recordings_path(side)).values():
+    for t, p in _csv_tosses(default_recordings_path(side)).values():
         tc = t - _rising_crossing(t, p[:, 2], z_cross) + t_nom
         rows = []
         for tau in taus:
@@ -482,7 +505,7 @@ def _recorded_positions_at(side: T.TossSide, taus: tuple[float, ...]) -> np.ndar
     return np.array(out)
 
 
-def _evaluation_positions_at(model: T.TossModel, taus: tuple[float, ...]) -> np.ndarray:
+def _evaluation_positions_at(model: TossModel, taus: tuple[float, ...]) -> np.ndarray:
     """Where the robust evaluation's ball is at each tau (K, len(taus), 3) [m]: flown by
     ball.simulate from each toss's recorded_start_state at t_lift + 5 ms (no racket)."""
     t0 = model.t_lift + 0.005
@@ -496,12 +519,12 @@ def _evaluation_positions_at(model: T.TossModel, taus: tuple[float, ...]) -> np.
     return out
 
 
-@pytest.mark.parametrize("side", T.TOSS_SIDES)
-def test_recorded_toss_spread_at_the_strike_is_the_recordings_spread(side: T.TossSide) -> None:
+@pytest.mark.parametrize("side", TOSS_SIDES)
+def test_recorded_toss_spread_at_the_strike_is_the_recordings_spread(side: TossSide) -> None:
     """The balls the robust evaluation flies spread at tau as the recordings do there
     (std per axis and its norm within 20 %), not ~7 times wider as when flown from the
     noisy state just after the lift."""
-    model = T.load_default_toss_model(side)
+    model = load_default_toss_model(side)
     recorded = _recorded_positions_at(side, SPREAD_TAUS)
     flown = _evaluation_positions_at(model, SPREAD_TAUS)
     for i, tau in enumerate(SPREAD_TAUS):
@@ -518,9 +541,9 @@ def test_recorded_toss_spread_at_the_strike_is_the_recordings_spread(side: T.Tos
     assert float(np.median(miss)) < 1.5e-3 and float(np.max(miss)) < 5e-3
 
 
-@pytest.mark.parametrize("side", T.TOSS_SIDES)
-def test_recorded_state_reproduces_its_own_recording(side: T.TossSide) -> None:
-    model = T.load_default_toss_model(side)
+@pytest.mark.parametrize("side", TOSS_SIDES)
+def test_recorded_state_reproduces_its_own_recording(side: TossSide) -> None:
+    model = load_default_toss_model(side)
     for k in (0, 7, model.n_tosses - 1):
         rec = model.recordings.recordings[k]  # on the command clock
         for tau in (model.free_flight_start + 0.01, 0.8, 0.95, float(model.t[-1])):
@@ -545,7 +568,7 @@ def test_recorded_state_reproduces_its_own_recording(side: T.TossSide) -> None:
 
 
 def test_recorded_start_state_flies_through_the_recorded_state() -> None:
-    model = T.load_default_toss_model("right")
+    model = load_default_toss_model("right")
     t0, tau = model.t_lift + 0.005, 0.91
     for k in (2, 11):
         s0 = model.recorded_start_state(k, t0, tau)
@@ -570,25 +593,25 @@ def test_local_fit_state_windows_and_refusals() -> None:
     p = np.stack([0.1 + 0.2 * t, -0.3 * t, 1.0 + 2.0 * t - 4.9 * t**2], axis=1)
     kw = {"half_window": 0.06, "order": 2}
     for time in (0.0, 0.03, 0.5, 0.99):  # one-sided windows at both ends of the span
-        pos, vel = T._local_fit_state(t, p, time, (0.0, float(t[-1])), **kw)
+        pos, vel = local_fit_state(t, p, time, (0.0, float(t[-1])), **kw)
         assert np.allclose(pos, [0.1 + 0.2 * time, -0.3 * time, 1.0 + 2.0 * time - 4.9 * time**2], atol=1e-12)
         assert np.allclose(vel, [0.2, -0.3, 2.0 - 9.8 * time], atol=1e-9)
     with pytest.raises(InvalidInputError, match="not covered"):
-        T._local_fit_state(t, p, 1.2, (0.0, float(t[-1])), **kw)
+        local_fit_state(t, p, 1.2, (0.0, float(t[-1])), **kw)
     with pytest.raises(InvalidInputError, match="shorter"):
-        T._local_fit_state(t, p, 0.5, (0.45, 0.55), **kw)
+        local_fit_state(t, p, 0.5, (0.45, 0.55), **kw)
     gap = (t < 0.4) | (t > 0.6)
     with pytest.raises(InvalidInputError, match="does not cover"):
-        T._local_fit_state(t[gap], p[gap], 0.5, (0.0, float(t[-1])), **kw)
+        local_fit_state(t[gap], p[gap], 0.5, (0.0, float(t[-1])), **kw)
 
 
-def test_recording_with_a_gap_at_the_strike_is_refused(robot: Robot, right: T.TossPrimitive) -> None:
-    recs = T.simulate_tosses(robot, right, 4, np.random.default_rng(8))
+def test_recording_with_a_gap_at_the_strike_is_refused(robot: Robot, right: TossPrimitive) -> None:
+    recs = simulate_tosses(robot, right, 4, np.random.default_rng(8))
     first = recs.recordings[0]
     off = recs.truth[0].clock_offset  # type: ignore[index]
     keep = np.abs(first.t - off - 0.9) > 0.07  # 140 ms without the ball seen around 0.9 s
-    holed = T.TossRecording(toss_id=first.toss_id, t=first.t[keep], p=first.p[keep])
-    model = T.TossModel.from_recordings(right, T.TossRecordings(recordings=(holed, *recs.recordings[1:]), truth=recs.truth))
+    holed = TossRecording(toss_id=first.toss_id, t=first.t[keep], p=first.p[keep])
+    model = TossModel.from_recordings(right, TossRecordings(recordings=(holed, *recs.recordings[1:]), truth=recs.truth))
     with pytest.raises(InvalidInputError, match=f"{first.toss_id}.*does not cover"):
         model.recorded_state_at(0.9, 0)
     assert np.isfinite(model.recorded_state_at(0.9, 1).p).all()
@@ -599,13 +622,13 @@ def test_recording_with_a_gap_at_the_strike_is_refused(robot: Robot, right: T.To
 # ------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("side", T.TOSS_SIDES)
-def test_default_models_load(side: T.TossSide) -> None:
-    path = T.default_recordings_path(side)
+@pytest.mark.parametrize("side", TOSS_SIDES)
+def test_default_models_load(side: TossSide) -> None:
+    path = default_recordings_path(side)
     assert path.is_file() and path.stat().st_size < 300_000
-    model = T.load_default_toss_model(side)
-    assert model is T.load_default_toss_model(side)  # cached
-    assert model.side == side and model.n_tosses == T.DEFAULT_N_TOSSES
+    model = load_default_toss_model(side)
+    assert model is load_default_toss_model(side)  # cached
+    assert model.side == side and model.n_tosses == DEFAULT_N_TOSSES
     # t_lift of a vertical release scatters by ~2.5 ms (std) over 20 noisy tosses
     assert model.t_lift == pytest.approx(model.primitive.release.time, abs=6e-3)
     y_sign = -1.0 if side == "right" else 1.0
@@ -614,31 +637,31 @@ def test_default_models_load(side: T.TossSide) -> None:
     assert apex - model.primitive.release.position[2] == pytest.approx(0.35, abs=0.01)
     assert model.t[-1] >= model.t_lift + 0.7
     assert 0.005 < float(np.linalg.norm(model.spread_at(model.t_lift + 0.7))) < 0.025
-    report = T.toss_report(side)
+    report = toss_report(side)
     assert f"toss_{side}: 20 tosses" in report and f"t_lift {model.t_lift:.4f} s" in report and "0.7 s after the lift" in report
 
 
 def test_generator_is_deterministic(tmp_path: Path) -> None:
-    paths = T.generate_default_recordings(tmp_path, n=2, seed=7)
+    paths = generate_default_recordings(tmp_path, n=2, seed=7)
     first = [p.read_bytes() for p in paths]
-    paths = T.generate_default_recordings(tmp_path, n=2, seed=7)
+    paths = generate_default_recordings(tmp_path, n=2, seed=7)
     assert [p.read_bytes() for p in paths] == first
     assert [p.name for p in paths] == ["right.csv", "left.csv"]
 
 
 def test_noise_validation() -> None:
     with pytest.raises(InvalidInputError, match="vibration"):
-        T.TossNoise(vibration=-1.0)
+        TossNoise(vibration=-1.0)
     with pytest.raises(InvalidInputError, match="camera_rate"):
-        T.TossNoise(camera_rate=0.0)
+        TossNoise(camera_rate=0.0)
     with pytest.raises(InvalidInputError, match="clock_offset"):
-        T.TossNoise(clock_offset=(5.0, 1.0))
+        TossNoise(clock_offset=(5.0, 1.0))
 
 
 def test_t_lift_of_the_shipped_recordings_is_unchanged() -> None:
     """The release-time fit's residuals come from per-recording sums (normal equations);
     the dense least-squares version gave these values (to the last digits)."""
-    from studio.toss.model import load_default_toss_model
+    from studio.toss.defaults import load_default_toss_model
 
     assert load_default_toss_model("right").t_lift == pytest.approx(0.36278579354291823, abs=1e-9)
     assert load_default_toss_model("left").t_lift == pytest.approx(0.3613239543407857, abs=1e-9)

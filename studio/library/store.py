@@ -24,7 +24,7 @@ before ``u[k]`` acts. Each ``u[k]`` is the planned smooth command at the interva
 midpoint t_k + dt/2, so the held steps follow the smooth plan to O(dt^2); a controller
 that interpolates linearly from ``u[k]`` at t_k to ``u[k+1]`` at t_k+1 runs the motion
 ~0.5 ms late. The arrays end with the last (rest) command held until the predicted joints
-are within :data:`studio.planning.planner.SETTLE` (|q - u| <= 0.1 mm / 0.1 mrad, |q'| <= 1 mm/s /
+are within :data:`studio.planning.settle.SETTLE` (|q - u| <= 0.1 mm / 0.1 mrad, |q'| <= 1 mm/s /
 1 mrad/s on the last two samples): a controller may stop streaming after ``t[-1]``. The
 entry's ``cup_hold`` records the ball-in-cup check of preparation + toss (times on ``t``).
 
@@ -341,11 +341,11 @@ class ServeLibrary:
     ) -> LibraryEntry:
         """Export an evaluated serve (:class:`studio.serve.evaluate.Evaluation`) with its plan.
 
-        ``preparation``: the :class:`studio.planning.planner.PreparationPhase` before the toss
+        ``preparation``: the :class:`studio.planning.preparation.PreparationPhase` before the toss
         (default: the one the evaluation was planned with, ``evaluation.motion.preparation``,
         i.e. ``EvaluationContext.preparation(side)``); the arrays then hold preparation +
         toss + strike + return to rest + final hold on one clock from 0 (DESIGN.md,
-        :func:`studio.planning.planner.serve_arrays`), the toss starting at ``t_toss`` (stored in the
+        :func:`studio.planning.serve_plan.serve_arrays`), the toss starting at ``t_toss`` (stored in the
         NPZ and the index). Without any, the arrays start with the toss (``t_toss`` = 0).
 
         The peak joint efforts of the arrays written (:mod:`studio.serve.efforts`) go into the
@@ -363,7 +363,8 @@ class ServeLibrary:
             raise InvalidInputError(f"serve {ev.serve.name!r} has no motion plan to export ({ev.status}: {ev.reason})")
         self.entries()  # a corrupt library stops the export before any work (checked again under the lock)
         from studio.serve.efforts import arrays_effort_report
-        from studio.planning.planner import SETTLE, serve_arrays  # casadi & pinocchio: not at import (dashboard)
+        from studio.planning.serve_plan import serve_arrays  # casadi & pinocchio: not at import (dashboard)
+        from studio.planning.settle import SETTLE
         from studio.robot.model import load_robot
 
         motion = getattr(ev, "motion", None)

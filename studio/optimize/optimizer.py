@@ -742,7 +742,7 @@ def optimize_serve(
             if context is not None:
                 toss = context.toss_model(side)
             else:
-                from studio.toss.model import load_default_toss_model
+                from studio.toss.defaults import load_default_toss_model
 
                 toss = load_default_toss_model(side)
             bounds = bounds_for_toss(toss)

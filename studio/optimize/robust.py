@@ -277,7 +277,7 @@ def robustify_serve(
         from studio.optimize.optimizer import bounds_for_toss
 
         if context is None:
-            from studio.toss.model import load_default_toss_model
+            from studio.toss.defaults import load_default_toss_model
 
             bounds = bounds_for_toss(load_default_toss_model(serve.side))
         else:

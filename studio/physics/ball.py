@@ -1280,6 +1280,10 @@ def rk4_step(
     return y1, deriv(y1)
 
 
+_EndReason = Literal["t_max", "floor", "max_table_bounces", "rest", "max_events"]
+"""Why :func:`simulate` ended."""
+
+
 def simulate(
     state: BallState,
     t_max: float,
@@ -1300,21 +1304,10 @@ def simulate(
 
     Flight is integrated with classic RK4 at a fixed step ``max_step`` (shortened only
     to land on ``t0 + t_max``); each step carries a cubic Hermite dense output. Events
-    are searched on that dense output: the event functions (sphere vs court boxes:
-    table top incl. its edges, net, posts, extras; floor plane; the moving racket's
-    blade, either face) are sampled on sub-intervals shorter than r/4 of ball travel,
-    and every sign change is located by Brent's method (grazing contacts between
-    samples by a bounded minimization), so event times do not depend on the step size.
-    At an event the impact map of the object is applied (table: :class:`TableBounceModel`
-    with the contact normal, so edge hits bounce off the edge; net/posts:
-    :class:`NetModel`; floor: the table model; racket: ``racket_model.bounce_moving``)
-    and integration restarts from the event instant.
-
-    Racket contact: with ``n`` the racket z axis and ``d = n . (p_ball - p_racket)``,
-    contact when ``|d| - (r + RACKET_HALF_THICKNESS)`` reaches 0 (from the side the ball
-    is on at the start of the step) while the ball centre projects inside the blade
-    ellipse (RACKET_BLADE_WIDTH along racket x, RACKET_BLADE_LENGTH along y). Hits on
-    the blade rim and on the handle are not modelled.
+    are searched on that dense output (:class:`_EventSearch`) and located by Brent's
+    method, so event times do not depend on the step size. At an event the impact map
+    of the object is applied (:func:`_impact`) and integration restarts from the event
+    instant.
 
     Args:
         state: initial ball state (world frame).
@@ -1338,6 +1331,72 @@ def simulate(
     Raises:
         InvalidInputError: non-finite or non-positive durations/steps, bad arguments.
     """
+    _check_simulate_args(state, t_max, t0, dt_out, max_step, max_table_bounces, racket)
+    if racket is not None and racket_model is None:
+        racket_model = RacketModel.default()
+    rules = _EventRules(table, net, racket_model, court, stop_on_floor, max_table_bounces)
+    search = _EventSearch(flight.radius, court, racket)
+    pieces_t, pieces_y, events, t_final, end_reason = _integrate(flight, search, rules, state, float(t0), float(t_max), max_step)
+    return _assemble(pieces_t, pieces_y, events, float(t0), t_final, dt_out, end_reason)
+
+
+def _integrate(
+    flight: FlightModel, search: _EventSearch, rules: _EventRules, state: BallState, t0: float, t_max: float, max_step: float
+) -> tuple[list[tuple[float, float]], list[tuple[list[float], list[float], list[float], list[float]]], list[Event], float, _EndReason]:
+    """The flight from ``state`` at ``t0`` for at most ``t_max`` [s]: RK4 steps of
+    ``max_step`` with cubic Hermite dense output, each cut at its first event, where
+    ``rules`` apply the impact map and decide whether to stop. Returns the pieces' time
+    spans and dense outputs ``(y_a, f_a, y_b, f_b)``, the events, the final time [s] and
+    why it ended."""
+    deriv = flight.scalar_derivative()
+    t = t0
+    t_stop = t + t_max
+    y = [*state.p.tolist(), *state.v.tolist(), *state.w.tolist()]
+    f = deriv(y)
+    pieces_t: list[tuple[float, float]] = []
+    pieces_y: list[tuple[list[float], list[float], list[float], list[float]]] = []
+    events: list[Event] = []
+    n_table = 0
+    end_reason: _EndReason = "t_max"
+    while t < t_stop - 1e-12:
+        h = min(max_step, t_stop - t)
+        if t_stop - (t + h) < 1e-9:
+            h = t_stop - t
+        y1, f1 = rk4_step(deriv, y, f, h)
+        ya, fa = y, f
+        found = search.first_event(t, h, ya, fa, y1, f1)
+        if found is None:
+            pieces_t.append((t, t + h))
+            pieces_y.append((ya, fa, y1, f1))
+            t, y, f = t + h, y1, f1
+            continue
+        best_theta, best = found
+        te = t + best_theta * h
+        ye = hermite(best_theta, h, ya, fa, y1, f1, 9)
+        fe = deriv(ye)
+        pieces_t.append((t, te))
+        pieces_y.append((ya, fa, ye, fe))
+        event = rules.impact(best, te, ye)
+        events.append(event)
+        t = te
+        y = [*ye[0:3], *event.v_after.tolist(), *event.w_after.tolist()]
+        f = deriv(y)
+        if event.kind == "table":
+            n_table += 1
+        reason = rules.stop_reason(event, n_table, len(events))
+        if reason is not None:
+            end_reason = reason
+            break
+    # closing zero-length piece: the final (post-event) state
+    pieces_t.append((t, t))
+    pieces_y.append((y, f, y, f))
+    return pieces_t, pieces_y, events, t, end_reason
+
+
+def _check_simulate_args(
+    state: object, t_max: float, t0: float, dt_out: float, max_step: float, max_table_bounces: int | None, racket: object
+) -> None:
+    """InvalidInputError for a bad argument of :func:`simulate`."""
     if not isinstance(state, BallState):
         raise InvalidInputError(f"simulate: state must be a BallState, got {type(state).__name__}")
     for label, val in (("t_max", t_max), ("dt_out", dt_out), ("max_step", max_step)):
@@ -1349,57 +1408,62 @@ def simulate(
         raise InvalidInputError(f"simulate: max_table_bounces must be >= 1 or None, got {max_table_bounces!r}")
     if racket is not None and not isinstance(racket, RacketMotion):
         raise InvalidInputError("simulate: racket must provide t_start, t_end and state(t) (RacketMotion)")
-    if racket is not None and racket_model is None:
-        racket_model = RacketModel.default()
 
-    deriv = flight.scalar_derivative()
-    r = flight.radius
-    floor_z = court.floor_z
-    obstacles = [_Obstacle(b.name, b.kind, b.center, b.half_size) for b in court.boxes()]
-    slab = r + C.RACKET_HALF_THICKNESS
-    ra2 = (0.5 * C.RACKET_BLADE_WIDTH) ** 2
-    rb2 = (0.5 * C.RACKET_BLADE_LENGTH) ** 2
-    racket_reach = 0.5 * max(C.RACKET_BLADE_WIDTH, C.RACKET_BLADE_LENGTH) + slab
-    margin = r + 0.005
 
-    t = float(t0)
-    t_stop = t + float(t_max)
-    y = [*state.p.tolist(), *state.v.tolist(), *state.w.tolist()]
-    f = deriv(y)
-    pieces_t: list[tuple[float, float]] = []
-    pieces_y: list[tuple[list[float], list[float], list[float], list[float]]] = []
-    events: list[Event] = []
-    n_table = 0
-    end_reason: Literal["t_max", "floor", "max_table_bounces", "rest", "max_events"] = "t_max"
-    racket_cache: dict[float, RacketState] = {}
+class _EventSearch:
+    """The first event of a flight step on its dense output: the event functions (sphere
+    vs court boxes: table top incl. its edges, net, posts, extras; floor plane; the moving
+    racket's blade, either face) are sampled on sub-intervals shorter than r/4 of ball
+    travel, and every sign change is located by Brent's method (grazing contacts between
+    samples by a bounded minimization, :func:`_first_crossing`).
 
-    def _plane_from_state(tt: float) -> tuple[float, float, float, float, float, float]:
-        rs = racket_state(tt)
-        return (*rs.p.tolist(), *rs.R[:, 2].tolist())  # type: ignore[return-value]
+    Racket contact: with ``n`` the racket z axis and ``d = n . (p_ball - p_racket)``,
+    contact when ``|d| - (r + RACKET_HALF_THICKNESS)`` reaches 0 (from the side the ball
+    is on at the start of the step) while the ball centre projects inside the blade
+    ellipse (RACKET_BLADE_WIDTH along racket x, RACKET_BLADE_LENGTH along y). Hits on
+    the blade rim and on the handle are not modelled.
+    """
 
-    racket_plane: Callable[[float], tuple[float, float, float, float, float, float]] = (
-        getattr(racket, "_fast_plane", None) or _plane_from_state
-    )
-    # The ball box farther than the racket's reach from every origin the racket can have
-    # over the step: no contact possible, skip the racket planes (the same events result).
-    racket_far = getattr(racket, "_far", None)
+    def __init__(self, r: float, court: Court, racket: RacketMotion | None) -> None:
+        self.r = r
+        """Ball radius [m]."""
+        self.floor_z = court.floor_z
+        self.obstacles = [_Obstacle(b.name, b.kind, b.center, b.half_size) for b in court.boxes()]
+        self.slab = r + C.RACKET_HALF_THICKNESS
+        self.ra2 = (0.5 * C.RACKET_BLADE_WIDTH) ** 2
+        self.rb2 = (0.5 * C.RACKET_BLADE_LENGTH) ** 2
+        self.racket_reach = 0.5 * max(C.RACKET_BLADE_WIDTH, C.RACKET_BLADE_LENGTH) + self.slab
+        self.margin = r + 0.005
+        self.racket = racket
+        self._racket_cache: dict[float, RacketState] = {}
+        self.racket_plane: Callable[[float], tuple[float, float, float, float, float, float]] = (
+            getattr(racket, "_fast_plane", None) or self._plane_from_state
+        )
+        # The ball box farther than the racket's reach from every origin the racket can have
+        # over the step: no contact possible, skip the racket planes (the same events result).
+        self.racket_far = getattr(racket, "_far", None)
 
-    def racket_state(tt: float) -> RacketState:
-        rs = racket_cache.get(tt)
+    def racket_state(self, tt: float) -> RacketState:
+        """The racket's state at ``tt`` [s] (cached: the search asks for the same times)."""
+        rs = self._racket_cache.get(tt)
         if rs is None:
-            assert racket is not None
-            rs = racket.state(tt)
-            if len(racket_cache) > 64:
-                racket_cache.clear()
-            racket_cache[tt] = rs
+            assert self.racket is not None
+            rs = self.racket.state(tt)
+            if len(self._racket_cache) > 64:
+                self._racket_cache.clear()
+            self._racket_cache[tt] = rs
         return rs
 
-    while t < t_stop - 1e-12:
-        h = min(max_step, t_stop - t)
-        if t_stop - (t + h) < 1e-9:
-            h = t_stop - t
-        y1, f1 = rk4_step(deriv, y, f, h)
-        ya, fa = y, f
+    def _plane_from_state(self, tt: float) -> tuple[float, float, float, float, float, float]:
+        rs = self.racket_state(tt)
+        return (*rs.p.tolist(), *rs.R[:, 2].tolist())  # type: ignore[return-value]
+
+    def first_event(
+        self, t: float, h: float, ya: list[float], fa: list[float], y1: list[float], f1: list[float]
+    ) -> tuple[float, tuple[str, object]] | None:
+        """The first event in the step ``[t, t + h]`` (dense output ``ya, fa, y1, f1``):
+        (theta in (0, 1], ("floor", None) | ("box", obstacle) | ("racket", (side, state)))."""
+        r, margin = self.r, self.margin
 
         def pos(theta: float, _ya: list[float] = ya, _fa: list[float] = fa, _y1: list[float] = y1,
                 _f1: list[float] = f1, _h: float = h) -> list[float]:
@@ -1415,12 +1479,12 @@ def simulate(
         best_theta = 2.0
         best: tuple[str, object] | None = None
         # --- floor -------------------------------------------------------------------
-        if lo[2] - r <= floor_z:
-            th = _first_crossing(lambda th: pos(th)[2] - r - floor_z, n_sub, 1e-3)
+        if lo[2] - r <= self.floor_z:
+            th = _first_crossing(lambda th: pos(th)[2] - r - self.floor_z, n_sub, 1e-3)
             if th is not None and th < best_theta:
                 best_theta, best = th, ("floor", None)
         # --- court boxes ---------------------------------------------------------------
-        for ob in obstacles:
+        for ob in self.obstacles:
             if (
                 lo[0] > ob.c[0] + ob.h[0] or hi[0] < ob.c[0] - ob.h[0]
                 or lo[1] > ob.c[1] + ob.h[1] or hi[1] < ob.c[1] - ob.h[1]
@@ -1431,50 +1495,83 @@ def simulate(
             if th is not None and th < best_theta:
                 best_theta, best = th, ("box", ob)
         # --- racket --------------------------------------------------------------------
-        if racket is not None:
-            ta_r = max(t, racket.t_start)
-            tb_r = min(t + h, racket.t_end)
-            if ta_r < tb_r and not (racket_far is not None and racket_far(lo, hi, ta_r, tb_r, racket_reach + 0.01)):
-                pl_a = racket_plane(ta_r)
-                pl_b = racket_plane(tb_r)
-                pa = pos((ta_r - t) / h)
-                pb = pos((tb_r - t) / h)
-                rel_travel = math.dist(pa, pb) + math.dist(pl_a[:3], pl_b[:3])
-                dist_a = math.dist(pa, pl_a[:3])
-                dist_b = math.dist(pb, pl_b[:3])
-                if min(dist_a, dist_b) < racket_reach + rel_travel + 0.01:
-                    d_a = sum(pl_a[3 + j] * (pa[j] - pl_a[j]) for j in range(3))
-                    s = 1.0 if d_a >= 0.0 else -1.0
+        if self.racket is not None:
+            hit = self._racket_event(t, h, pos, lo, hi)
+            if hit is not None and hit[0] < best_theta:
+                best_theta, best = hit
+        return None if best is None else (best_theta, best)
 
-                    def g_racket(th: float, _s: float = s, _ta: float = ta_r, _tb: float = tb_r) -> float:
-                        tt = _ta + th * (_tb - _ta)
-                        ox, oy, oz, nx, ny, nz = racket_plane(tt)
-                        px, py, pz = pos((tt - t) / h)
-                        return _s * (nx * (px - ox) + ny * (py - oy) + nz * (pz - oz)) - slab
+    def _racket_event(
+        self,
+        t: float,
+        h: float,
+        pos: Callable[[float], list[float]],
+        lo: tuple[float, float, float],
+        hi: tuple[float, float, float],
+    ) -> tuple[float, tuple[str, object]] | None:
+        """The racket contact in the step (ball box ``lo``..``hi``, positions ``pos``) while
+        the racket is active: (theta of the step, ("racket", (side, racket state))), or None."""
+        racket = self.racket
+        assert racket is not None
+        r, slab, racket_plane = self.r, self.slab, self.racket_plane
+        ta_r = max(t, racket.t_start)
+        tb_r = min(t + h, racket.t_end)
+        if not ta_r < tb_r or (self.racket_far is not None and self.racket_far(lo, hi, ta_r, tb_r, self.racket_reach + 0.01)):
+            return None
+        pl_a = racket_plane(ta_r)
+        pl_b = racket_plane(tb_r)
+        pa = pos((ta_r - t) / h)
+        pb = pos((tb_r - t) / h)
+        rel_travel = math.dist(pa, pb) + math.dist(pl_a[:3], pl_b[:3])
+        dist_a = math.dist(pa, pl_a[:3])
+        dist_b = math.dist(pb, pl_b[:3])
+        if not min(dist_a, dist_b) < self.racket_reach + rel_travel + 0.01:
+            return None
+        d_a = sum(pl_a[3 + j] * (pa[j] - pl_a[j]) for j in range(3))
+        s = 1.0 if d_a >= 0.0 else -1.0
 
-                    n_rk = max(4, math.ceil(rel_travel / (0.25 * r)))
-                    th = _first_crossing(g_racket, n_rk, 2e-3)
-                    if th is not None:
-                        tt = ta_r + th * (tb_r - ta_r)
-                        rs = racket_state(tt)
-                        local = rs.R.T @ (np.array(pos((tt - t) / h)) - rs.p)
-                        inside = local[0] ** 2 / ra2 + local[1] ** 2 / rb2 <= 1.0
-                        theta_glob = (tt - t) / h
-                        if inside and theta_glob < best_theta:
-                            best_theta, best = theta_glob, ("racket", (s, rs))
+        def g_racket(th: float, _s: float = s, _ta: float = ta_r, _tb: float = tb_r) -> float:
+            tt = _ta + th * (_tb - _ta)
+            ox, oy, oz, nx, ny, nz = racket_plane(tt)
+            px, py, pz = pos((tt - t) / h)
+            return _s * (nx * (px - ox) + ny * (py - oy) + nz * (pz - oz)) - slab
 
-        if best is None:
-            pieces_t.append((t, t + h))
-            pieces_y.append((ya, fa, y1, f1))
-            t, y, f = t + h, y1, f1
-            continue
+        n_rk = max(4, math.ceil(rel_travel / (0.25 * r)))
+        th = _first_crossing(g_racket, n_rk, 2e-3)
+        if th is None:
+            return None
+        tt = ta_r + th * (tb_r - ta_r)
+        rs = self.racket_state(tt)
+        local = rs.R.T @ (np.array(pos((tt - t) / h)) - rs.p)
+        inside = local[0] ** 2 / self.ra2 + local[1] ** 2 / self.rb2 <= 1.0
+        if not inside:
+            return None
+        return (tt - t) / h, ("racket", (s, rs))
 
-        # --- event ---------------------------------------------------------------------
-        te = t + best_theta * h
-        ye = hermite(best_theta, h, ya, fa, y1, f1, 9)
-        fe = deriv(ye)
-        pieces_t.append((t, te))
-        pieces_y.append((ya, fa, ye, fe))
+
+@dataclass(frozen=True, eq=False)
+class _EventRules:
+    """What happens at an event of :func:`simulate`: the impact maps (table, with the
+    contact normal, so edge hits bounce off the edge: :class:`TableBounceModel`;
+    net/posts: :class:`NetModel`; floor: the table model; racket:
+    ``racket_model.bounce_moving``) and when the simulation stops."""
+
+    table: TableBounceModel
+    """Table (and floor) bounce model."""
+    net: NetModel
+    """Net/post impact model."""
+    racket_model: RacketModel | None
+    """Racket impact model (needed with a racket)."""
+    court: Court
+    """Court geometry (table halves)."""
+    stop_on_floor: bool
+    """Stop at the first floor contact."""
+    max_table_bounces: int | None
+    """Stop right after this many table bounces (None: no limit)."""
+
+    def impact(self, best: tuple[str, object], te: float, ye: list[float]) -> Event:
+        """The :class:`Event` of the ball in state ``ye`` (9,) at ``te`` [s] hitting
+        ``best`` (see :meth:`_EventSearch.first_event`)."""
         p_e = np.array(ye[0:3])
         v_b = np.array(ye[3:6])
         w_b = np.array(ye[6:9])
@@ -1484,60 +1581,49 @@ def simulate(
             kind: EventKind = "floor"
             part = "floor"
             normal = np.array([0.0, 0.0, 1.0])
-            v_a, w_a = table.bounce(v_b, w_b)
-            side = court.side(float(p_e[0]))
+            v_a, w_a = self.table.bounce(v_b, w_b)
+            side = self.court.side(float(p_e[0]))
         elif what == "box":
             assert isinstance(info, _Obstacle)
             normal = _box_normal(p_e, info)
             if info.kind == "table":
                 kind = "table"
                 part = "top" if normal[2] > 1.0 - 1e-9 else ("edge" if normal[2] > 0.0 else "side")
-                v_a, w_a = _bounce_on_normal(table, v_b, w_b, normal)
-                side = court.side(float(p_e[0]))
+                v_a, w_a = _bounce_on_normal(self.table, v_b, w_b, normal)
+                side = self.court.side(float(p_e[0]))
             elif info.kind in ("net", "post"):
                 kind = "net"
                 part = "net" if info.kind == "net" else "post"
-                v_a, w_a = net.bounce(v_b, w_b, normal, "net" if info.kind == "net" else "post")
+                v_a, w_a = self.net.bounce(v_b, w_b, normal, "net" if info.kind == "net" else "post")
             else:
                 kind = "obstacle"
                 part = info.name
-                v_a, w_a = net.bounce(v_b, w_b, normal, "post")
+                v_a, w_a = self.net.bounce(v_b, w_b, normal, "post")
         else:
+            racket_model = self.racket_model
             assert racket_model is not None and isinstance(info, tuple)
             s, rs = info
             kind = "racket"
             part = "face_a" if s > 0.0 else "face_b"
             normal = s * rs.R[:, 2]
-            contact = p_e - r * normal
             # racket velocity at the ball centre with the spin relative to omega: the slip at the
             # contact point is then exact (the serve contacts' convention, RacketModel.bounce_moving)
             v_a, w_a = racket_model.bounce_moving(v_b, w_b, rs.R, rs.point_velocity(p_e), s, omega=rs.omega)
-        events.append(
-            Event(kind=kind, t=te, p=p_e, v_before=v_b, v_after=v_a, w_before=w_b, w_after=w_a,
-                  part=part, normal=normal, side=side)
-        )
-        t = te
-        y = [*ye[0:3], *v_a.tolist(), *w_a.tolist()]
-        f = deriv(y)
-        if kind == "table":
-            n_table += 1
-        if kind == "floor" and stop_on_floor:
-            end_reason = "floor"
-            break
-        if kind == "table" and max_table_bounces is not None and n_table >= max_table_bounces:
-            end_reason = "max_table_bounces"
-            break
-        if kind in ("table", "floor") and normal[2] > 0.99 and float(v_a @ normal) < _REST_SPEED:
-            end_reason = "rest"
-            break
-        if len(events) >= _MAX_EVENTS:
-            end_reason = "max_events"
-            break
+        return Event(kind=kind, t=te, p=p_e, v_before=v_b, v_after=v_a, w_before=w_b, w_after=w_a, part=part, normal=normal, side=side)
 
-    # closing zero-length piece: the final (post-event) state
-    pieces_t.append((t, t))
-    pieces_y.append((y, f, y, f))
-    return _assemble(pieces_t, pieces_y, events, float(t0), t, dt_out, end_reason)
+    def stop_reason(self, event: Event, n_table: int, n_events: int) -> _EndReason | None:
+        """Why :func:`simulate` ends at ``event`` (after ``n_table`` table bounces and
+        ``n_events`` events), or None if it goes on."""
+        kind, normal = event.kind, event.normal
+        if kind == "floor" and self.stop_on_floor:
+            return "floor"
+        if kind == "table" and self.max_table_bounces is not None and n_table >= self.max_table_bounces:
+            return "max_table_bounces"
+        if kind in ("table", "floor") and normal[2] > 0.99 and float(event.v_after @ normal) < _REST_SPEED:
+            return "rest"
+        if n_events >= _MAX_EVENTS:
+            return "max_events"
+        return None
 
 
 def _assemble(
@@ -1547,7 +1633,7 @@ def _assemble(
     t0: float,
     t_final: float,
     dt_out: float,
-    end_reason: Literal["t_max", "floor", "max_table_bounces", "rest", "max_events"],
+    end_reason: _EndReason,
 ) -> Trajectory:
     """Sample the piecewise Hermite dense output on the output grid + event instants."""
     ta = np.array([a for a, _ in pieces_t])

@@ -17,7 +17,7 @@ normal, the cup's axis)::
 (0.905 for the shipped cup: the ball rolls over the rim once the cup accelerates
 sideways at ~0.9 times its normal load). Friction between ball and rim only widens the
 cone; it is left out (conservative). Air drag on the ball, moving with the cup through
-still air, is in ``f`` (``+ k |v| v``, as in :func:`studio.toss.model.find_release`): < 0.1
+still air, is in ``f`` (``+ k |v| v``, as in :func:`studio.toss.release.find_release`): < 0.1
 m/s^2 in the preparation, ~1 m/s^2 pressing the rising ball into the cup near the
 toss's release.
 The check allows ``c = c_geom / CUP_SAFETY_FACTOR``. ``tests/test_cup_hold.py`` measures

@@ -1,7 +1,7 @@
 """Joint efforts of a serve's exported motion, checked against the robot's effort limits.
 
 The peak force/torque of each joint over the whole exported motion (preparation, toss,
-strike, return and final hold, :func:`studio.planning.planner.serve_arrays`): pinocchio's inverse
+strike, return and final hold, :func:`studio.planning.serve_plan.serve_arrays`): pinocchio's inverse
 dynamics (:meth:`studio.robot.model.Robot.joint_efforts`) of the predicted joint trajectory,
 accelerations from the joint model q'' = wn^2 (u - q) - 2 zeta wn q'. The limits are the
 ``effort`` values of ``robots/serve_robot.toml``: stated estimates (no data-sheet figures
@@ -28,7 +28,7 @@ from studio.errors import InvalidInputError
 
 if TYPE_CHECKING:
     from studio.serve.evaluate import ServeMotion
-    from studio.planning.planner import ServeArrays
+    from studio.planning.serve_plan import ServeArrays
     from studio.robot.model import Robot
 
 FloatArray = npt.NDArray[np.float64]
@@ -141,7 +141,7 @@ def effort_report(motion: ServeMotion, robot: Robot) -> EffortReport | None:
     return and final hold, times on the exported clock (None without a motion)."""
     if motion.t is None or motion.u is None or motion.q is None or len(motion.t) < 3:
         return None
-    from studio.planning.planner import serve_arrays
+    from studio.planning.serve_plan import serve_arrays
 
     arrays = serve_arrays(motion.t, motion.u, motion.q, motion.qd, robot.dynamics, preparation=motion.preparation)
     return arrays_effort_report(robot, arrays)

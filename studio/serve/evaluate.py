@@ -48,7 +48,8 @@ from studio.robot.model import JointDynamics, Robot, load_robot
 from studio.serve.rules import LegalityReport, RuleParams, ServeOutcome, check_serve, net_crossing
 from studio.serve.target import RacketTarget
 from studio.serve.params import HandServe, LimitScale, TossSide
-from studio.toss.model import TossModel, load_default_toss_model
+from studio.toss.defaults import load_default_toss_model
+from studio.toss.model import TossModel
 
 Status = Literal["legal", "illegal", "planner_failed", "collision"]
 
@@ -83,7 +84,7 @@ class EvaluationContext:
     switch_delay: float = SWITCH_DELAY
     """Planner take-over time after lift [s]."""
     planner_options: Any = None
-    """:class:`studio.planning.planner.PlannerOptions` of the strike planner (``None``: its defaults,
+    """:class:`studio.planning.options.PlannerOptions` of the strike planner (``None``: its defaults,
     IPOPT fallback on). Training turns the fallback off (see :func:`training_context`)."""
     _tosses: dict[str, TossModel] = field(default_factory=dict)
     _toss_reports: dict[str, Any] = field(default_factory=dict)
@@ -105,24 +106,24 @@ class EvaluationContext:
         (106 ms against 33 ms; p95 379 against 71 ms). A target the SQP misses costs the
         optimizer one -10 evaluation instead.
         """
-        from studio.planning.planner import PlannerOptions
+        from studio.planning.options import PlannerOptions
 
         return cls(robot=load_robot(), planner_options=PlannerOptions(fallback=ipopt_fallback))
 
     def preparation(self, side: TossSide) -> Any:
         """The preparation phase before a side's toss (feeder pose ``q_flat`` to the
-        toss's first command, then a hold): :class:`studio.planning.planner.PreparationPhase`, cached."""
+        toss's first command, then a hold): :class:`studio.planning.preparation.PreparationPhase`, cached."""
         if side not in self._preparations:
-            from studio.planning.planner import preparation_phase
+            from studio.planning.preparation import preparation_phase
 
             self._preparations[side] = preparation_phase(self.robot, self.toss_model(side).primitive.u[0])
         return self._preparations[side]
 
     def cup_hold(self, side: TossSide) -> Any:
         """Ball-in-cup check of a side's preparation + toss up to the release, on the serve
-        clock (:func:`studio.planning.planner.serve_cup_check`), cached."""
+        clock (:func:`studio.planning.serve_plan.serve_cup_check`), cached."""
         if side not in self._cup_checks:
-            from studio.planning.planner import serve_cup_check
+            from studio.planning.serve_plan import serve_cup_check
 
             self._cup_checks[side] = serve_cup_check(self.robot, self.preparation(side), self.toss_model(side).primitive)
         return self._cup_checks[side]
@@ -155,7 +156,8 @@ class EvaluationContext:
         if scale.is_identity:
             return self.planner
         if scale not in self._planners:
-            from studio.planning.planner import PlannerOptions, StrikePlanner
+            from studio.planning.options import PlannerOptions
+            from studio.planning.planner import StrikePlanner
 
             while len(self._planners) >= MAX_SCALED_PLANNERS:  # a studio user sweeping the sliders
                 self._planners.pop(next(iter(self._planners)))
@@ -204,7 +206,7 @@ class EvaluationContext:
     @cached_property
     def mujoco_scene(self) -> Any:
         """The compiled MuJoCo scene (built on first use)."""
-        from studio.sim.rollout import build_scene
+        from studio.sim.scene import build_scene
 
         return build_scene()
 
@@ -254,7 +256,7 @@ class ServeMotion:
     qd: npt.NDArray[np.float64] | None = None
     """Predicted joint velocities (M, 8) (the toss's and the plan's, exact), when planned."""
     preparation: Any = None
-    """The :class:`studio.planning.planner.PreparationPhase` before the toss (the context's), when planned."""
+    """The :class:`studio.planning.preparation.PreparationPhase` before the toss (the context's), when planned."""
 
     def joint_states(self, t_end: float, dynamics: JointDynamics) -> npt.NDArray[np.float64]:
         """Predicted joint states [q, q'] (n, 8, 2) on the 1 kHz command grid from ``t[0]``
@@ -399,9 +401,14 @@ def _state_summary(p: npt.ArrayLike, v: npt.ArrayLike, w: npt.ArrayLike) -> dict
     }
 
 
+def _point3(p: npt.ArrayLike) -> tuple[float, float, float]:
+    x, y, z = (float(c) for c in np.asarray(p, dtype=float).ravel()[:3])
+    return (x, y, z)
+
+
 def ball_metrics(traj: Trajectory | Any, *, strike_t: float | None) -> BallMetrics:
     """Summaries of a ball path (predictor trajectory or rollout result)."""
-    contacts = getattr(traj, "events", None) or getattr(traj, "contacts", ())
+    contacts: tuple[Any, ...] = tuple(getattr(traj, "events", None) or getattr(traj, "contacts", None) or ())
     after = [c for c in contacts if strike_t is not None and c.t > strike_t]
     bounces = [c for c in after if c.kind == "table" and getattr(c, "part", "top") != "side"]
     second = None
@@ -430,7 +437,7 @@ def ball_metrics(traj: Trajectory | Any, *, strike_t: float | None) -> BallMetri
     return BallMetrics(
         second_bounce=second,
         net=net,
-        bounces=tuple(tuple(float(x) for x in b.p) for b in bounces),
+        bounces=tuple(_point3(b.p) for b in bounces),
         net_clearance=clearance,
         max_height=max_height,
         racket_speed_out=float(np.linalg.norm(racket[0].v_after)) if racket else None,
@@ -503,7 +510,8 @@ def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any
     Never raises for a target that is merely unreachable or unsafe: the failure is in
     :attr:`ServeMotion.failure`.
     """
-    from studio.planning.planner import StrikeTarget, start_from_toss
+    from studio.planning.serve_plan import start_from_toss
+    from studio.planning.strike import StrikeTarget
 
     timings: dict[str, float] = {}
     clock = time.perf_counter()
@@ -623,7 +631,7 @@ def evaluate_motion(
         source = rollout_result
         clock = _lap(timings, "mujoco", clock)
 
-    contacts = tuple(getattr(source, "events", None) or getattr(source, "contacts", ()))
+    contacts = tuple(getattr(source, "events", None) or getattr(source, "contacts", None) or ())
     racket_hits = [c for c in contacts if c.kind == "racket"]
     strike_t = racket_hits[0].t if racket_hits else None
     release = getattr(rollout_result, "release", None)
