@@ -73,7 +73,43 @@ _API: dict[str, str] = {
     "match_stats": "studio.library.match",
 }
 
-__all__ = sorted(_API)
+__all__ = [
+    "BallState",
+    "DataFileError",
+    "EffortLimitError",
+    "Evaluation",
+    "EvaluationContext",
+    "FlightModel",
+    "HandServe",
+    "InvalidInputError",
+    "LimitScale",
+    "RacketModel",
+    "Robot",
+    "ServeLibrary",
+    "ServeParams",
+    "StrikePlanner",
+    "StrikeTarget",
+    "StudioError",
+    "TableBounceModel",
+    "TossModel",
+    "TrainConfig",
+    "effort_report",
+    "evaluate_robust",
+    "evaluate_serve",
+    "load_default_toss_model",
+    "load_robot",
+    "load_serve",
+    "match_stats",
+    "optimize_serve",
+    "plan_serve",
+    "robustify_serve",
+    "rollout",
+    "save_serve",
+    "select_next",
+    "simulate",
+    "spin_components",
+    "train_serves",
+]
 
 if TYPE_CHECKING:
     from studio.errors import DataFileError, InvalidInputError, StudioError

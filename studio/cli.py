@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any
-from pathlib import Path
 from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -38,20 +38,26 @@ EFFORT_LIMIT_HELP = (
 
 def _effort_limits(args: argparse.Namespace) -> dict[str, float]:
     """The ``--effort-limit JOINT=VALUE`` options as {joint: limit} (InvalidInputError if bad)."""
-    from studio.serve.efforts import parse_limits
     from studio.robot.description import load_spec
+    from studio.serve.efforts import parse_limits
 
     return parse_limits(args.effort_limit, load_spec().joint_names)
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     import json
-
     from dataclasses import replace
 
     from studio.errors import InvalidInputError
     from studio.serve.efforts import EffortLimitError
-    from studio.serve.evaluate import EvaluationContext, effort_report, evaluate_motion, evaluate_robust, evaluate_serve, report_markdown
+    from studio.serve.evaluate import (
+        EvaluationContext,
+        effort_report,
+        evaluate_motion,
+        evaluate_robust,
+        evaluate_serve,
+        report_markdown,
+    )
     from studio.serve.params import LimitScale, load_serve
 
     if args.mujoco and args.tosses > 1:
@@ -88,36 +94,52 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             # plan on the mean toss path, never one sampled toss's; the robust result goes along.
             exported = evaluate_motion(evaluation.motion, context, task=task)
             provenance["robust"] = {
-                "tosses": len(robust.evaluations), "toss_samples": list(robust.samples), "legal": robust.legal,
-                "legal_fraction": robust.legal_fraction, "min_legal_fraction": robust.min_legal_fraction, "mean_reward": robust.reward,
-            }  # fmt: skip
+                "tosses": len(robust.evaluations),
+                "toss_samples": list(robust.samples),
+                "legal": robust.legal,
+                "legal_fraction": robust.legal_fraction,
+                "min_legal_fraction": robust.min_legal_fraction,
+                "mean_reward": robust.reward,
+            }
             exported_note = (
                 f" (the mean toss path's evaluation: {'legal' if exported.legal else 'not legal'}, reward {exported.reward.total:+.3f}; "
                 "the robust result is in its provenance)"
             )
         try:
             entry = ServeLibrary(args.export).add(
-                exported, provenance=provenance, task=task, preparation=context.preparation(serve.side), effort_limits=effort_limits,
-            )  # fmt: skip
+                exported,
+                provenance=provenance,
+                task=task,
+                preparation=context.preparation(serve.side),
+                effort_limits=effort_limits,
+            )
         except EffortLimitError as err:  # the report goes out first, then the refusal
             refused = str(err)
             payload["exported"] = {"library": str(args.export), "refused": refused}
         else:
             payload["exported"] = {
-                "library": str(args.export), "id": entry.id, "toss": "mean", "legal": exported.legal, "reward": exported.reward.total,
-            }  # fmt: skip
+                "library": str(args.export),
+                "id": entry.id,
+                "toss": "mean",
+                "legal": exported.legal,
+                "reward": exported.reward.total,
+            }
     if args.json:
         print(json.dumps(payload, indent=2))
     else:
         status, checks, metrics = report_markdown(evaluation)
         print(f"{serve.name} ({serve.side} toss, task {task})\n")
         if robust is not None and robust.samples:
-            print(f"checks and metrics of recorded toss {robust.samples[0] + 1} (the first of {len(robust.evaluations)} drawn; the verdict over all of them is at the end)\n")
+            print(
+                f"checks and metrics of recorded toss {robust.samples[0] + 1} (the first of {len(robust.evaluations)} drawn; the verdict over all of them is at the end)\n"
+            )
         print(status, checks, metrics, sep="\n\n")
         if efforts is not None:
             print("\n" + efforts.markdown())
         if args.tosses > 1:
-            print(f"\nover {args.tosses} recorded tosses: legal fraction {payload['legal_fraction']:.2f}, mean reward {payload['reward']:+.3f}, legal: {payload['legal']}")
+            print(
+                f"\nover {args.tosses} recorded tosses: legal fraction {payload['legal_fraction']:.2f}, mean reward {payload['reward']:+.3f}, legal: {payload['legal']}"
+            )
         if refused is not None:
             print(f"\nnot exported to {args.export}: {refused}")
         elif args.export:
@@ -128,13 +150,12 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_optimize(args: argparse.Namespace) -> int:
     import threading
     import time
-    from pathlib import Path
-
-    from studio.serve.evaluate import EvaluationContext, evaluate_serve
     from dataclasses import replace
+    from pathlib import Path
 
     from studio.errors import InvalidInputError, StudioError
     from studio.optimize.optimizer import optimize_serve
+    from studio.serve.evaluate import EvaluationContext, evaluate_serve
     from studio.serve.params import LimitScale, load_serve
 
     effort_limits = _effort_limits(args)
@@ -143,13 +164,19 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     if limit_scale is None and not args.resume and seeds:  # the seeds' own scale
         scales = {s.limit_scale for s in seeds}
         if len(scales) > 1:
-            raise InvalidInputError(f"the seed serves plan with different limit scales {[s.to_json() for s in scales]}: choose one with --limit-scale")
+            raise InvalidInputError(
+                f"the seed serves plan with different limit scales {[s.to_json() for s in scales]}: choose one with --limit-scale"
+            )
         limit_scale = scales.pop()
     run_dir = Path(args.run_dir or f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{args.side}-{args.task}")
     start = time.perf_counter()
 
     def progress(done: int, total: int, best: float, _params: object) -> None:
-        print(f"\r{done:5d}/{total} evaluations  best reward {best:+.3f}  {time.perf_counter() - start:6.1f} s", end="", flush=True)
+        print(
+            f"\r{done:5d}/{total} evaluations  best reward {best:+.3f}  {time.perf_counter() - start:6.1f} s",
+            end="",
+            flush=True,
+        )
 
     stop = threading.Event()
     try:
@@ -180,8 +207,15 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
         print("nothing evaluated")
         return 1
     s = result.summary
-    print(f"chosen serve: mean reward {s.mean_reward:+.3f} on {len(s.rewards)} fresh tosses, legal on {100 * s.legal_fraction:.0f} % ({'legal' if s.legal else 'not legal'})")
-    best = replace(result.best, name=args.name or f"{args.task} {args.side} seed {args.seed}", task=args.task, notes=f"HEBO run {run_dir}, seed {args.seed}")
+    print(
+        f"chosen serve: mean reward {s.mean_reward:+.3f} on {len(s.rewards)} fresh tosses, legal on {100 * s.legal_fraction:.0f} % ({'legal' if s.legal else 'not legal'})"
+    )
+    best = replace(
+        result.best,
+        name=args.name or f"{args.task} {args.side} seed {args.seed}",
+        task=args.task,
+        notes=f"HEBO run {run_dir}, seed {args.seed}",
+    )
     if args.robustify:
         from studio.optimize.robust import robustify_chosen
 
@@ -200,9 +234,12 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
         context = EvaluationContext.default()
         evaluation = evaluate_serve(best, context, task=args.task)
         entry = ServeLibrary(args.export).add(
-            evaluation, provenance={"kind": "hebo", "run": str(run_dir), "seed": args.seed}, task=args.task, preparation=context.preparation(best.side),
+            evaluation,
+            provenance={"kind": "hebo", "run": str(run_dir), "seed": args.seed},
+            task=args.task,
+            preparation=context.preparation(best.side),
             effort_limits=effort_limits,
-        )  # fmt: skip
+        )
         print(f"exported to {args.export} as {entry.id}")
     return 0 if s.legal else 1
 
@@ -220,13 +257,24 @@ def _cmd_robustify(args: argparse.Namespace) -> int:
     start = time.perf_counter()
 
     def progress(done: int, total: int, best: RobustScore) -> None:
-        print(f"\r{done:4d}/{total} candidates  best legal on {best.legal}/{best.tosses} tosses  {time.perf_counter() - start:5.1f} s", end="", flush=True)
+        print(
+            f"\r{done:4d}/{total} candidates  best legal on {best.legal}/{best.tosses} tosses  {time.perf_counter() - start:5.1f} s",
+            end="",
+            flush=True,
+        )
 
     try:
         res = robustify_serve(
-            serve, task=args.task, keep_spin=args.keep_spin, sigma=args.sigma, evaluations=args.evaluations, seed=args.seed,
-            run_dir=run_dir, resume=args.resume, progress=progress,
-        )  # fmt: skip
+            serve,
+            task=args.task,
+            keep_spin=args.keep_spin,
+            sigma=args.sigma,
+            evaluations=args.evaluations,
+            seed=args.seed,
+            run_dir=run_dir,
+            resume=args.resume,
+            progress=progress,
+        )
     except KeyboardInterrupt:
         where = f"; continue with --resume --run-dir {run_dir}" if run_dir else " (give --run-dir to be able to resume)"
         print(f"\ninterrupted{where}")
@@ -247,22 +295,34 @@ def _cmd_train(args: argparse.Namespace) -> int:
     export each legal chosen serve to the library, and print a Table II-like summary."""
     from pathlib import Path
 
-    from studio.serve.params import LimitScale, load_serve
     from studio.optimize.training import TrainConfig, TrainedServe, finished_runs, summary_table, train_serves
+    from studio.serve.params import LimitScale, load_serve
 
     cfg = TrainConfig(
-        task=args.task, count=args.count, side=args.side, iterations=args.iterations, population=args.population, tosses=args.tosses,
-        seed=args.seed, workers=args.workers, seeds=tuple(load_serve(p) for p in args.seeds), runs_dir=Path(args.runs or f"runs/train-{args.task}"),
-        overlap=False if args.sequential else None, limit_scale=LimitScale.parse(args.limit_scale) if args.limit_scale is not None else LimitScale(),
+        task=args.task,
+        count=args.count,
+        side=args.side,
+        iterations=args.iterations,
+        population=args.population,
+        tosses=args.tosses,
+        seed=args.seed,
+        workers=args.workers,
+        seeds=tuple(load_serve(p) for p in args.seeds),
+        runs_dir=Path(args.runs or f"runs/train-{args.task}"),
+        overlap=False if args.sequential else None,
+        limit_scale=LimitScale.parse(args.limit_scale) if args.limit_scale is not None else LimitScale(),
         robustify=args.robustify,
-    )  # fmt: skip
+    )
 
     def progress(r: TrainedServe, total: int) -> None:
         if r.reason == "already trained":
             print(f"[{r.index + 1}/{total}] {r.run_dir.name}: already trained", flush=True)
             return
         verdict = f"exported as {r.entry_id}" if r.entry_id else f"not legal ({r.reason}), not exported"
-        print(f"[{r.index + 1}/{total}] {r.run_dir.name}: reward {r.reward:+.3f}, {verdict} ({r.seconds:.0f} s)", flush=True)
+        print(
+            f"[{r.index + 1}/{total}] {r.run_dir.name}: reward {r.reward:+.3f}, {verdict} ({r.seconds:.0f} s)",
+            flush=True,
+        )
 
     if args.report:
         done = finished_runs(cfg)
@@ -277,7 +337,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     try:
         results = train_serves(cfg, args.library, ray_address=args.ray, progress=progress)
     except KeyboardInterrupt:
-        print(f"\ninterrupted: finished runs and every logged evaluation are in {cfg.runs_dir}; run the same command again to resume")
+        print(
+            f"\ninterrupted: finished runs and every logged evaluation are in {cfg.runs_dir}; run the same command again to resume"
+        )
         return 130
     print()
     print(summary_table(results, cfg.task))
@@ -293,7 +355,14 @@ def _cmd_dashboard(args: argparse.Namespace) -> int:
     library = args.library_dir or args.library or "serve-library"
     if args.reference is not None and not Path(args.reference).is_file():
         raise InvalidInputError(f"--reference {args.reference}: no such file")
-    run_dashboard(library_dir=library, host=args.host, port=args.port, studio_url=args.studio_url, runs_dir=args.runs, reference=args.reference)
+    run_dashboard(
+        library_dir=library,
+        host=args.host,
+        port=args.port,
+        studio_url=args.studio_url,
+        runs_dir=args.runs,
+        reference=args.reference,
+    )
     return 0
 
 
@@ -305,9 +374,9 @@ def _cmd_toss(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from studio.errors import DataFileError, InvalidInputError
     from studio.physics import ball_calibration as BC
     from studio.physics import flight_calibration as FC
-    from studio.errors import DataFileError, InvalidInputError
 
     folds = 5 if args.folds is None else args.folds
     if args.no_serve_contacts and args.serve_contacts is not None:
@@ -331,7 +400,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     if args.write:
         BC.write_models_json(racket)
         FC.write_flight_json(flight)
-        print(f"\nwrote {BC.RACKET_MODELS_JSON} and {FC.FLIGHT_MODEL_JSON} (the defaults in studio/physics/ball.py follow the flight record by hand)")
+        print(
+            f"\nwrote {BC.RACKET_MODELS_JSON} and {FC.FLIGHT_MODEL_JSON} (the defaults in studio/physics/ball.py follow the flight record by hand)"
+        )
     return 0
 
 
@@ -340,8 +411,8 @@ def _cmd_library(args: argparse.Namespace) -> int:
 
 
 def _library_list(args: argparse.Namespace) -> int:
-    from studio.library.store import ServeLibrary
     from studio.library.selection import serve_cluster, usage_count
+    from studio.library.store import ServeLibrary
 
     entries = ServeLibrary(args.dir).entries()
     print(f"{len(entries)} serves in {args.dir}")
@@ -361,8 +432,8 @@ def _library_list(args: argparse.Namespace) -> int:
 def _library_show(args: argparse.Namespace) -> int:
     import json
 
-    from studio.library.store import ServeLibrary
     from studio.library.selection import serve_cluster
+    from studio.library.store import ServeLibrary
 
     entry = ServeLibrary(args.dir).get(args.id)
     print(f"cluster: {serve_cluster(entry)}")
@@ -389,14 +460,17 @@ def _library_validate(args: argparse.Namespace) -> int:
     leftovers = orphan_files(lib, entries)
     print(f"{args.dir}: valid ({len(entries)} serves with their arrays, {len(points)} logged points)")
     if leftovers:  # valid, but files no entry refers to: left by a crash or by hand
-        print(f"note: {len(leftovers)} file(s) no entry refers to (kept; delete them by hand if unwanted): " + ", ".join(leftovers[:10]))
+        print(
+            f"note: {len(leftovers)} file(s) no entry refers to (kept; delete them by hand if unwanted): "
+            + ", ".join(leftovers[:10])
+        )
     return 0
 
 
 def _library_select(args: argparse.Namespace) -> int:
-    from studio.library.store import ServeLibrary
     from studio.library.match import next_serve
     from studio.library.selection import serve_cluster, usage_count
+    from studio.library.store import ServeLibrary
 
     entry = next_serve(ServeLibrary(args.dir), args.previous, strict=True)
     print(f"{entry.id}\t{entry.data['name']}\t{serve_cluster(entry)}\tused {usage_count(entry)}")
@@ -405,21 +479,30 @@ def _library_select(args: argparse.Namespace) -> int:
 
 def _library_record(args: argparse.Namespace) -> int:
     from studio.errors import InvalidInputError
-    from studio.library.store import ServeLibrary
     from studio.library.match import record_point
+    from studio.library.store import ServeLibrary
 
     if args.server == "robot" and args.serve is None:  # the flags named (record_point checks the same)
         raise InvalidInputError("--serve ID is required when the robot serves")
     if args.server == "opponent" and args.serve is not None:
         raise InvalidInputError("--serve is only for robot serves (--server robot)")
-    points = record_point(ServeLibrary(args.dir), server=args.server, winner=args.winner, serve=args.serve, ace=args.ace, opponent=args.opponent)
-    print(f"recorded point {len(points)}: server {args.server}, serve {args.serve or '-'}, winner {args.winner}{', ace' if args.ace else ''}")
+    points = record_point(
+        ServeLibrary(args.dir),
+        server=args.server,
+        winner=args.winner,
+        serve=args.serve,
+        ace=args.ace,
+        opponent=args.opponent,
+    )
+    print(
+        f"recorded point {len(points)}: server {args.server}, serve {args.serve or '-'}, winner {args.winner}{', ace' if args.ace else ''}"
+    )
     return 0
 
 
 def _library_stats(args: argparse.Namespace) -> int:
-    from studio.library.store import ServeLibrary
     from studio.library.match import MATCH_LOG, load_points, stats_report
+    from studio.library.store import ServeLibrary
 
     lib = ServeLibrary(args.dir)
     print(stats_report(lib.entries(), load_points(lib.folder / MATCH_LOG), min_uses=args.min_uses))
@@ -427,15 +510,17 @@ def _library_stats(args: argparse.Namespace) -> int:
 
 
 def _library_prune(args: argparse.Namespace) -> int:
-    from studio.library.store import ServeLibrary
     from studio.library.match import MATCH_LOG, PRUNED_DIR, load_points, prune, prune_candidates, serve_records
+    from studio.library.store import ServeLibrary
 
     lib = ServeLibrary(args.dir)
     entries = lib.entries()
     records = serve_records(load_points(lib.folder / MATCH_LOG), [e.id for e in entries])
     candidates, total = prune_candidates(records, min_uses=args.min_uses)
     baseline = "-" if total.n == 0 else f"{100 * total.rate:.1f} %"
-    print(f"library serving win rate {baseline} over {total.n} serves; rule: used >= {args.min_uses} and Wilson 95 % upper bound below it")
+    print(
+        f"library serving win rate {baseline} over {total.n} serves; rule: used >= {args.min_uses} and Wilson 95 % upper bound below it"
+    )
     for c in candidates:
         r = c.record
         print(f"  {r.id}: {r.won}/{r.used} won, upper bound {100 * c.upper:.1f} %")
@@ -475,30 +560,74 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p = sub.add_parser("app", help="start the serve design studio (viser, in the browser)")
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default: localhost only)")
     p.add_argument("--port", type=_bounded(int, 1, 65535), default=8080, help="port (default 8080)")
-    p.add_argument("--serves", default=None, help="folder of hand-designed serve JSON files, read and written by 'save as seed' (default: ./serves; the shipped examples are listed too)")
+    p.add_argument(
+        "--serves",
+        default=None,
+        help="folder of hand-designed serve JSON files, read and written by 'save as seed' (default: ./serves; the shipped examples are listed too)",
+    )
     p.add_argument("--library", default=None, help="serve library folder to export to (default: ./serve-library)")
     handlers["app"] = _cmd_app
 
     p = sub.add_parser("evaluate", help="plan, simulate, check and score a serve JSON file")
     p.add_argument("serve", help="hand-designed serve JSON file")
     p.add_argument("--task", default=None, help="reward task preset (default: the serve's task or topspin_velocity)")
-    p.add_argument("--tosses", type=_bounded(int, 1, 200), default=1, help="evaluate on K recorded tosses (robust evaluation)")
-    p.add_argument("--legal-fraction", type=_bounded(float, 0.0, 1.0), default=0.8, help="fraction of legal tosses for a legal serve (with --tosses)")
-    p.add_argument("--mujoco", action="store_true", help="check with the MuJoCo rollout (ball tossed from the cup, robot and ball in MuJoCo) instead of the analytic predictor; not with --tosses > 1")
+    p.add_argument(
+        "--tosses", type=_bounded(int, 1, 200), default=1, help="evaluate on K recorded tosses (robust evaluation)"
+    )
+    p.add_argument(
+        "--legal-fraction",
+        type=_bounded(float, 0.0, 1.0),
+        default=0.8,
+        help="fraction of legal tosses for a legal serve (with --tosses)",
+    )
+    p.add_argument(
+        "--mujoco",
+        action="store_true",
+        help="check with the MuJoCo rollout (ball tossed from the cup, robot and ball in MuJoCo) instead of the analytic predictor; not with --tosses > 1",
+    )
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
-    p.add_argument("--export", default=None, metavar="DIR", help="write the plan to the serve library folder DIR (with --tosses: its mean-toss evaluation, the robust result in the provenance)")
-    p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default: the serve file's limit_scale, else 1)")
+    p.add_argument(
+        "--export",
+        default=None,
+        metavar="DIR",
+        help="write the plan to the serve library folder DIR (with --tosses: its mean-toss evaluation, the robust result in the provenance)",
+    )
+    p.add_argument(
+        "--limit-scale",
+        default=None,
+        metavar="S",
+        help=LIMIT_SCALE_HELP + " (default: the serve file's limit_scale, else 1)",
+    )
     p.add_argument("--effort-limit", action="append", default=[], metavar="JOINT=VALUE", help=EFFORT_LIMIT_HELP)
     handlers["evaluate"] = _cmd_evaluate
 
-    p = sub.add_parser("robustify", help="search around a serve for one legal on more recorded tosses, keeping its spin")
+    p = sub.add_parser(
+        "robustify", help="search around a serve for one legal on more recorded tosses, keeping its spin"
+    )
     p.add_argument("serve", help="hand-designed serve JSON file")
     p.add_argument("--task", default=None, help="reward task of the tie-break (default: the serve's)")
-    p.add_argument("--keep-spin", type=_bounded(float, 0.0, 1.0), default=0.9, help="fraction of each spin component (top/back, side) at the net to keep (default 0.9)")
-    p.add_argument("--sigma", type=_bounded(float, 1e-6, 1.0), default=0.03, help="CMA-ES step on the normalized genome (default 0.03)")
-    p.add_argument("--evaluations", type=_bounded(int, 1, 1_000_000), default=600, help="candidates in all, in whole generations of 12 (default 600, ~1 min); a resume counts the logged ones")
+    p.add_argument(
+        "--keep-spin",
+        type=_bounded(float, 0.0, 1.0),
+        default=0.9,
+        help="fraction of each spin component (top/back, side) at the net to keep (default 0.9)",
+    )
+    p.add_argument(
+        "--sigma",
+        type=_bounded(float, 1e-6, 1.0),
+        default=0.03,
+        help="CMA-ES step on the normalized genome (default 0.03)",
+    )
+    p.add_argument(
+        "--evaluations",
+        type=_bounded(int, 1, 1_000_000),
+        default=600,
+        help="candidates in all, in whole generations of 12 (default 600, ~1 min); a resume counts the logged ones",
+    )
     p.add_argument("--seed", type=_bounded(int, 0, 2**32 - 1), default=0)
-    p.add_argument("--out", default=None, help="where to write the robust serve (default: <serve>_robust.json beside it)")
+    p.add_argument(
+        "--out", default=None, help="where to write the robust serve (default: <serve>_robust.json beside it)"
+    )
     p.add_argument("--run-dir", default=None, help="log every candidate here (robustify.jsonl) to be able to resume")
     p.add_argument("--resume", action="store_true", help="continue the search logged in --run-dir")
     handlers["robustify"] = _cmd_robustify
@@ -509,46 +638,92 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--task", default="topspin_velocity", help="reward task preset")
     p.add_argument("--iterations", type=_bounded(int, 0, 10_000), default=100, help="HEBO batches (paper: 100)")
     p.add_argument("--population", type=_bounded(int, 1, 1000), default=20, help="suggestions per batch (paper: 20)")
-    p.add_argument("--tosses", type=_bounded(int, 1, 200), default=5, help="recorded tosses per evaluation (default 5; 1: mean toss only, which overfits it)")
+    p.add_argument(
+        "--tosses",
+        type=_bounded(int, 1, 200),
+        default=5,
+        help="recorded tosses per evaluation (default 5; 1: mean toss only, which overfits it)",
+    )
     p.add_argument("--workers", type=_bounded(int, 1, 64), default=2, help="evaluation processes")
     p.add_argument("--seed", type=_bounded(int, 0, 2**32 - 1), default=0)
     p.add_argument("--name", default=None, help="name of the resulting serve")
-    p.add_argument("--run-dir", default=None, help="run folder (evaluations.jsonl, run.json); default runs/<time>-<side>-<task>")
+    p.add_argument(
+        "--run-dir", default=None, help="run folder (evaluations.jsonl, run.json); default runs/<time>-<side>-<task>"
+    )
     p.add_argument("--resume", action="store_true", help="continue the run in --run-dir without repeating evaluations")
     p.add_argument("--export", default=None, metavar="DIR", help="export the chosen serve to this serve library")
-    p.add_argument("--sequential", action="store_true", help="suggest each batch after the previous one is evaluated (default with 2+ workers: the next batch is suggested while the workers evaluate)")
-    p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default: the seed serves' own scale, else 1; on --resume: the run's own)")
+    p.add_argument(
+        "--sequential",
+        action="store_true",
+        help="suggest each batch after the previous one is evaluated (default with 2+ workers: the next batch is suggested while the workers evaluate)",
+    )
+    p.add_argument(
+        "--limit-scale",
+        default=None,
+        metavar="S",
+        help=LIMIT_SCALE_HELP + " (default: the seed serves' own scale, else 1; on --resume: the run's own)",
+    )
     p.add_argument("--effort-limit", action="append", default=[], metavar="JOINT=VALUE", help=EFFORT_LIMIT_HELP)
     p.add_argument("--robustify", type=_bounded(int, 0, 1_000_000), default=0, metavar="N", help=ROBUSTIFY_HELP)
     handlers["optimize"] = _cmd_optimize
 
-    p = sub.add_parser("train", help="train COUNT serves for a task (one HEBO run each) into a library, print a Table II-like summary")
+    p = sub.add_parser(
+        "train", help="train COUNT serves for a task (one HEBO run each) into a library, print a Table II-like summary"
+    )
     p.add_argument("--task", required=True, help="reward task preset")
     p.add_argument("--count", type=_bounded(int, 1, 10_000), default=25)
     p.add_argument("--library", default=None, help="serve library folder to export to (required to train)")
-    p.add_argument("--report", action="store_true", help="print the summary of the finished runs in --runs and exit (no training)")
+    p.add_argument(
+        "--report", action="store_true", help="print the summary of the finished runs in --runs and exit (no training)"
+    )
     p.add_argument("--seeds", nargs="*", default=[], help="hand-designed serve JSON files to seed every run")
     p.add_argument("--side", choices=("right", "left", "both"), default="both")
     p.add_argument("--iterations", type=_bounded(int, 0, 10_000), default=100)
     p.add_argument("--population", type=_bounded(int, 1, 1000), default=20)
     p.add_argument("--tosses", type=_bounded(int, 1, 200), default=5)
     p.add_argument("--workers", type=_bounded(int, 1, 64), default=2, help="evaluation processes per run")
-    p.add_argument("--seed", type=_bounded(int, 0, 2**32 - 1), default=0, help="seed of the first run (run i uses seed + i)")
-    p.add_argument("--runs", default=None, help="folder of the run folders (default runs/train-<task>); rerun to resume")
+    p.add_argument(
+        "--seed", type=_bounded(int, 0, 2**32 - 1), default=0, help="seed of the first run (run i uses seed + i)"
+    )
+    p.add_argument(
+        "--runs", default=None, help="folder of the run folders (default runs/train-<task>); rerun to resume"
+    )
     p.add_argument("--sequential", action="store_true", help="no overlapped suggestions (see optimize --sequential)")
-    p.add_argument("--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default 1; resumed runs must match)")
+    p.add_argument(
+        "--limit-scale", default=None, metavar="S", help=LIMIT_SCALE_HELP + " (default 1; resumed runs must match)"
+    )
     p.add_argument("--robustify", type=_bounded(int, 0, 1_000_000), default=0, metavar="N", help=ROBUSTIFY_HELP)
-    p.add_argument("--ray", default=None, metavar="ADDRESS", help="run the runs as tasks on a Ray cluster (ray.init address, e.g. auto or ray://host:10001; 'local' starts a local instance)")
+    p.add_argument(
+        "--ray",
+        default=None,
+        metavar="ADDRESS",
+        help="run the runs as tasks on a Ray cluster (ray.init address, e.g. auto or ray://host:10001; 'local' starts a local instance)",
+    )
     handlers["train"] = _cmd_train
 
     p = sub.add_parser("dashboard", help="serve the Panel dashboard of a serve library")
-    p.add_argument("library_dir", nargs="?", default=None, metavar="LIBRARY", help="serve library folder (default ./serve-library; or --library)")
+    p.add_argument(
+        "library_dir",
+        nargs="?",
+        default=None,
+        metavar="LIBRARY",
+        help="serve library folder (default ./serve-library; or --library)",
+    )
     p.add_argument("--library", default=None, help="serve library folder (the same as LIBRARY)")
-    p.add_argument("--reference", default=None, metavar="FILE", help="match file in the Ace public format: its robot and human serves are drawn beside the library's in the net-crossing plots (read only)")
+    p.add_argument(
+        "--reference",
+        default=None,
+        metavar="FILE",
+        help="match file in the Ace public format: its robot and human serves are drawn beside the library's in the net-crossing plots (read only)",
+    )
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default: localhost only)")
     p.add_argument("--port", type=_bounded(int, 1, 65535), default=5006)
     p.add_argument("--studio-url", default="http://127.0.0.1:8080", help="link to the studio shown beside each serve")
-    p.add_argument("--runs", default="runs", help="folder of HEBO run folders for the convergence plots (default ./runs; runs elsewhere are not read)")
+    p.add_argument(
+        "--runs",
+        default="runs",
+        help="folder of HEBO run folders for the convergence plots (default ./runs; runs elsewhere are not read)",
+    )
     handlers["dashboard"] = _cmd_dashboard
 
     p = sub.add_parser("toss", help="analyse toss recordings: lift time, rise, spread")
@@ -561,17 +736,36 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
         help="refit the racket, flight and table models on real data and print one table: before, after (cross-validated), noise",
     )
     p.add_argument("--folds", type=_bounded(int, 2, 100), default=None, help="cross-validation folds (default 5)")
-    p.add_argument("--repeats", type=_bounded(int, 1, 100), default=1, help="random fold splits pooled for the racket CV (default 1)")
-    p.add_argument("--serve-contacts", type=Path, default=None,
-                   help="robot serve contacts CSV in the Ace format (default: the shipped studio/data/robot_serve_contacts)")
+    p.add_argument(
+        "--repeats",
+        type=_bounded(int, 1, 100),
+        default=1,
+        help="random fold splits pooled for the racket CV (default 1)",
+    )
+    p.add_argument(
+        "--serve-contacts",
+        type=Path,
+        default=None,
+        help="robot serve contacts CSV in the Ace format (default: the shipped studio/data/robot_serve_contacts)",
+    )
     p.add_argument("--no-serve-contacts", action="store_true", help="fit the racket on the racket-at-rest bounces only")
-    p.add_argument("--match", type=Path, default=None,
-                   help="match events CSV in the Ace public format (default ../shared/data/ace_match/match_data_dev.csv)")
+    p.add_argument(
+        "--match",
+        type=Path,
+        default=None,
+        help="match events CSV in the Ace public format (default ../shared/data/ace_match/match_data_dev.csv)",
+    )
     p.add_argument("--no-cv", action="store_true", help="skip the flight model's cross-validations (~2 min)")
-    p.add_argument("--write", action="store_true", help="write the fitted parameter records (racket_models.json, flight_model.json)")
+    p.add_argument(
+        "--write",
+        action="store_true",
+        help="write the fitted parameter records (racket_models.json, flight_model.json)",
+    )
     handlers["calibrate"] = _cmd_calibrate
 
-    p = sub.add_parser("library", help="serve library: list, show, validate, select the next serve, record points, statistics, prune")
+    p = sub.add_parser(
+        "library", help="serve library: list, show, validate, select the next serve, record points, statistics, prune"
+    )
     lsub = p.add_subparsers(dest="library_command", required=True)
     q = lsub.add_parser("list", help="table of the serves with spin cluster, reward, legality and usage")
     q.add_argument("dir", help="serve library folder")
@@ -580,12 +774,21 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     q.add_argument("dir", help="serve library folder")
     q.add_argument("id", help="serve id")
     q.set_defaults(library_handler=_library_show)
-    q = lsub.add_parser("validate", help="load the index, every NPZ and the match log; exit 1 naming file and field on failure")
+    q = lsub.add_parser(
+        "validate", help="load the index, every NPZ and the match log; exit 1 naming file and field on failure"
+    )
     q.add_argument("dir", help="serve library folder")
     q.set_defaults(library_handler=_library_validate)
-    q = lsub.add_parser("select", help="the next serve: least used, from a spin cluster other than the previous serve's")
+    q = lsub.add_parser(
+        "select", help="the next serve: least used, from a spin cluster other than the previous serve's"
+    )
     q.add_argument("dir", help="serve library folder")
-    q.add_argument("--previous", default=None, metavar="ID", help="id of the serve executed last (default: the robot's last serve in the match log)")
+    q.add_argument(
+        "--previous",
+        default=None,
+        metavar="ID",
+        help="id of the serve executed last (default: the robot's last serve in the match log)",
+    )
     q.set_defaults(library_handler=_library_select)
     q = lsub.add_parser("record", help="append a point to DIR/matches.jsonl and update the usage counters")
     q.add_argument("dir", help="serve library folder")
@@ -597,11 +800,21 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     q.set_defaults(library_handler=_library_record)
     q = lsub.add_parser("stats", help="Table-I-like summary (Wilson 95 %% intervals, aces) and per-serve records")
     q.add_argument("dir", help="serve library folder")
-    q.add_argument("--min-uses", type=_bounded(int, 1, 10**9), default=10, help="minimum uses before a serve is flagged for pruning")
+    q.add_argument(
+        "--min-uses",
+        type=_bounded(int, 1, 10**9),
+        default=10,
+        help="minimum uses before a serve is flagged for pruning",
+    )
     q.set_defaults(library_handler=_library_stats)
     q = lsub.add_parser("prune", help="move the statistically worst serves to DIR/pruned/")
     q.add_argument("dir", help="serve library folder")
-    q.add_argument("--min-uses", type=_bounded(int, 1, 10**9), default=10, help="minimum uses before a serve can be pruned (default 10)")
+    q.add_argument(
+        "--min-uses",
+        type=_bounded(int, 1, 10**9),
+        default=10,
+        help="minimum uses before a serve can be pruned (default 10)",
+    )
     q.add_argument("--dry-run", action="store_true", help="only report what would be pruned")
     q.set_defaults(library_handler=_library_prune)
     handlers["library"] = _cmd_library

@@ -27,3 +27,7 @@ def test_import_studio_loads_no_heavy_library() -> None:
     code = "import sys, studio; print(sorted(m for m in ('numpy', 'casadi', 'pinocchio', 'mujoco', 'torch', 'viser') if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_all_lists_exactly_the_lazy_names() -> None:
+    assert studio.__all__ == sorted(studio._API)

@@ -33,7 +33,6 @@ with ~97.5 % one-sided confidence.
 
 from __future__ import annotations
 
-import json
 import math
 import shutil
 from collections.abc import Iterable, Sequence
@@ -43,10 +42,10 @@ from pathlib import Path
 from typing import Any
 
 from studio.errors import DataFileError, InvalidInputError
-from studio.storage.jsonlog import append_jsonl
 from studio.library.store import LibraryEntry, ServeLibrary
 from studio.storage.confined import confined
 from studio.storage.jsonfile import lone_surrogate, parse_json, read_file_bytes
+from studio.storage.jsonlog import append_jsonl
 
 MATCH_LOG = "matches.jsonl"
 """File name of the match log inside a library folder."""
@@ -105,7 +104,13 @@ class Point:
     """Opponent's name, if known."""
 
     def to_json(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"time": self.time, "server": self.server, "serve": self.serve, "winner": self.winner, "ace": self.ace}
+        out: dict[str, Any] = {
+            "time": self.time,
+            "server": self.server,
+            "serve": self.serve,
+            "winner": self.winner,
+            "ace": self.ace,
+        }
         if self.opponent is not None:
             out["opponent"] = self.opponent
         return out
@@ -133,13 +138,17 @@ def point_from_json(doc: Any, *, where: str) -> Point:
             raise InvalidInputError(f"{where}: field {key!r} must be 'robot' or 'opponent', got {doc[key]!r}")
     serve = doc["serve"]
     if doc["server"] == "robot" and (not isinstance(serve, str) or not serve):
-        raise InvalidInputError(f"{where}: field 'serve' must be the robot serve's id when the robot serves, got {serve!r}")
+        raise InvalidInputError(
+            f"{where}: field 'serve' must be the robot serve's id when the robot serves, got {serve!r}"
+        )
     if doc["server"] == "opponent" and serve is not None:
         raise InvalidInputError(f"{where}: field 'serve' must be null when the opponent serves, got {serve!r}")
     if not isinstance(doc["ace"], bool):
         raise InvalidInputError(f"{where}: field 'ace' must be true or false")
     if doc["ace"] and doc["winner"] != doc["server"]:
-        raise InvalidInputError(f"{where}: field 'ace': an ace is won by the server ({doc['server']}), but the winner is {doc['winner']}")
+        raise InvalidInputError(
+            f"{where}: field 'ace': an ace is won by the server ({doc['server']}), but the winner is {doc['winner']}"
+        )
     opponent = doc.get("opponent")
     if opponent is not None and not isinstance(opponent, str):
         raise InvalidInputError(f"{where}: field 'opponent' must be a string or absent")
@@ -219,7 +228,14 @@ def record_point(
         raise InvalidInputError("a serve id is only for robot serves (server 'robot')")
     if server == "robot" and serve is None:
         raise InvalidInputError("the robot's serve (library id) is required when the robot serves")
-    point = Point(time=time or datetime.now(UTC).isoformat(timespec="seconds"), server=server, serve=serve, winner=winner, ace=ace, opponent=opponent or None)
+    point = Point(
+        time=time or datetime.now(UTC).isoformat(timespec="seconds"),
+        server=server,
+        serve=serve,
+        winner=winner,
+        ace=ace,
+        opponent=opponent or None,
+    )
     point_from_json(point.to_json(), where="new point")
     with library.lock():  # log + counters: one read-modify-write among all writers
         entries = library.entries()  # refuse to write to a library with a corrupt index
@@ -379,7 +395,11 @@ def prune_candidates(records: dict[str, ServeRecord], *, min_uses: int = MIN_USE
     total = Rate(sum(r.won for r in records.values()), sum(r.used for r in records.values()))
     if total.n == 0:
         return [], total
-    out = [PruneCandidate(r, r.win.interval[1], total.rate) for r in records.values() if r.used >= min_uses and r.win.interval[1] < total.rate]
+    out = [
+        PruneCandidate(r, r.win.interval[1], total.rate)
+        for r in records.values()
+        if r.used >= min_uses and r.win.interval[1] < total.rate
+    ]
     return sorted(out, key=lambda c: (c.upper, c.record.id)), total
 
 
@@ -446,7 +466,9 @@ def _interval(rate: Rate) -> str:
     return f"{100 * lo:.1f}–{100 * hi:.1f}"
 
 
-def stats_report(entries: Sequence[LibraryEntry], points: Sequence[Point], *, min_uses: int = MIN_USES, compact: bool = False) -> str:
+def stats_report(
+    entries: Sequence[LibraryEntry], points: Sequence[Point], *, min_uses: int = MIN_USES, compact: bool = False
+) -> str:
     """Table-I-like summary and the per-serve table (plain text, markdown tables).
 
     ``compact``: for a narrow panel (the studio's Match tab): the Table I figures as a list
@@ -470,7 +492,9 @@ def stats_report(entries: Sequence[LibraryEntry], points: Sequence[Point], *, mi
         ]
         for e in entries:
             r = records[e.id]
-            lines.append(f"| {e.data['name']} | {serve_cluster(e)} | {r.used} | {r.won} | {r.aces} | {'yes' if e.id in flagged else ''} |")
+            lines.append(
+                f"| {e.data['name']} | {serve_cluster(e)} | {r.used} | {r.won} | {r.aces} | {'yes' if e.id in flagged else ''} |"
+            )
         return "\n".join(lines)
     lines = [
         "| serves in library (right, left) | robot serves | win % receiving (95 % WCI) | win % serving (95 % WCI) | aces (% of robot serves) | opponents |",
@@ -491,7 +515,9 @@ def stats_report(entries: Sequence[LibraryEntry], points: Sequence[Point], *, mi
         )
     unknown = sorted({p.serve for p in points if p.serve is not None} - set(records))
     lines.append("")
-    lines.append(f"library serving win rate (pruning baseline): {_pct(total.rate)} % over {total.n} serves; prune rule: used >= {min_uses} and Wilson upper bound < baseline")
+    lines.append(
+        f"library serving win rate (pruning baseline): {_pct(total.rate)} % over {total.n} serves; prune rule: used >= {min_uses} and Wilson upper bound < baseline"
+    )
     if unknown:
         lines.append(f"serves in the log but not in the library (pruned or foreign): {', '.join(unknown)}")
     return "\n".join(lines)

@@ -44,7 +44,11 @@ Engineering choice for a readable colouring, not from the paper."""
 MIN_SPIN = 10.0
 """Below this total spin [rad/s] a serve is classed ``"no spin"`` (a served ball with
 less than ~1.6 rev/s is practically spinless)."""
-def spin_cluster(topspin: float, sidespin: float, cork: float = 0.0, *, dominance: float = SPIN_DOMINANCE, min_spin: float = MIN_SPIN) -> str:
+
+
+def spin_cluster(
+    topspin: float, sidespin: float, cork: float = 0.0, *, dominance: float = SPIN_DOMINANCE, min_spin: float = MIN_SPIN
+) -> str:
     """Spin cluster of a ball by the dominant component of its spin at the net crossing.
 
     Args:
@@ -103,14 +107,20 @@ def net_state(entry: dict[str, Any]) -> NetState | None:
         return None
     if v.shape != (3,) or w.shape != (3,) or not (np.all(np.isfinite(v)) and np.all(np.isfinite(w))):
         return None
-    return NetState(speed_h=float(np.hypot(v[0], v[1])), spin=float(np.linalg.norm(w)), topspin=tb, sidespin=ss, cork=ck, clearance=clearance)
+    return NetState(
+        speed_h=float(np.hypot(v[0], v[1])),
+        spin=float(np.linalg.norm(w)),
+        topspin=tb,
+        sidespin=ss,
+        cork=ck,
+        clearance=clearance,
+    )
 
 
 def entry_cluster(entry: dict[str, Any]) -> str:
     """Spin cluster of an index entry (``"no net crossing"`` when it has no net state)."""
     net = net_state(entry)
     return "no net crossing" if net is None else spin_cluster(net.topspin, net.sidespin, net.cork)
-
 
 
 HEAVY_SPIN = 150.0

@@ -51,29 +51,28 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import math
 import os
 import re
 import tempfile
 import uuid
 import zipfile
+from collections.abc import Mapping
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from studio.errors import DataFileError, InvalidInputError
-from studio.storage.filelock import locked
-from studio.storage.confined import confined
-from studio.storage.jsonfile import check_values, read_file_bytes, read_json_file
 from studio.paths import robots_dir
 from studio.robot.description import load_spec
 from studio.serve.params import HandServe, LimitScale, serve_from_json
+from studio.storage.confined import confined
+from studio.storage.filelock import locked
+from studio.storage.jsonfile import check_values, read_file_bytes, read_json_file
 
 LIBRARY_SCHEMA = "serve-studio/library@1"
 """Schema tag of the index file."""
@@ -107,7 +106,10 @@ def robot_identity(limit_scale: LimitScale | None = None) -> dict[str, Any]:
     scale = limit_scale if limit_scale is not None else LimitScale()
     joints = load_spec().actuated_joints
     out["limit_scale"] = scale.to_json()
-    out["limits"] = {order: [float(getattr(j, order)) * getattr(scale, order) for j in joints] for order in ("velocity", "acceleration", "jerk")}
+    out["limits"] = {
+        order: [float(getattr(j, order)) * getattr(scale, order) for j in joints]
+        for order in ("velocity", "acceleration", "jerk")
+    }
     return out
 
 
@@ -185,7 +187,10 @@ class LibraryEntry:
     def serve(self) -> HandServe:
         """The serve parameters as a hand-designed serve (for the studio or as a seed)."""
         d = self.data
-        serve = serve_from_json({"name": d["name"], "side": d["side"], "params": d["params"], "task": d.get("task")}, source=f"{self.folder / INDEX_NAME}: serve {self.id}")
+        serve = serve_from_json(
+            {"name": d["name"], "side": d["side"], "params": d["params"], "task": d.get("task")},
+            source=f"{self.folder / INDEX_NAME}: serve {self.id}",
+        )
         return replace(serve, limit_scale=self.limit_scale)
 
     @property
@@ -214,7 +219,9 @@ class LibraryEntry:
         if out["u"].shape != (m, 8) or out["q"].shape != (m, 8):
             raise DataFileError(path, f"arrays 'u' and 'q' must be ({m}, 8), got {out['u'].shape} and {out['q'].shape}")
         if out["ball_p"].shape != (out["ball_t"].shape[0], 3):
-            raise DataFileError(path, f"array 'ball_p' must be ({out['ball_t'].shape[0]}, 3), got {out['ball_p'].shape}")
+            raise DataFileError(
+                path, f"array 'ball_p' must be ({out['ball_t'].shape[0]}, 3), got {out['ball_p'].shape}"
+            )
         for key in _ARRAYS:
             if not np.all(np.isfinite(out[key])):
                 raise DataFileError(path, f"array {key!r} holds non-finite values")
@@ -256,7 +263,10 @@ class ServeLibrary:
         if isinstance(doc, dict):
             _strict_json({k: v for k, v in doc.items() if k != "serves"}, "index", self.index_path)
         if not isinstance(doc, dict) or doc.get("schema") != LIBRARY_SCHEMA:
-            raise DataFileError(self.index_path, f"field 'schema': expected {LIBRARY_SCHEMA!r}, got {doc.get('schema') if isinstance(doc, dict) else type(doc).__name__!r}")
+            raise DataFileError(
+                self.index_path,
+                f"field 'schema': expected {LIBRARY_SCHEMA!r}, got {doc.get('schema') if isinstance(doc, dict) else type(doc).__name__!r}",
+            )
         serves = doc.get("serves")
         if not isinstance(serves, list):
             raise DataFileError(self.index_path, "field 'serves': must be a list")
@@ -281,15 +291,24 @@ class ServeLibrary:
                 raise DataFileError(self.index_path, f"field '{where}.id': duplicate id {sid!r}")
             seen.add(sid)
             if entry["arrays"] != f"{sid}.npz":
-                raise DataFileError(self.index_path, f"field '{where}.arrays': must be '{sid}.npz', got {entry['arrays']!r}")
+                raise DataFileError(
+                    self.index_path, f"field '{where}.arrays': must be '{sid}.npz', got {entry['arrays']!r}"
+                )
             if not isinstance(entry["legal"], bool):
                 raise DataFileError(self.index_path, f"field '{where}.legal': must be true or false")
             reward = entry["reward"]
             if isinstance(reward, bool) or not isinstance(reward, (int, float)) or not np.isfinite(reward):
                 raise DataFileError(self.index_path, f"field '{where}.reward': must be a finite number")
             t_toss = entry.get("t_toss", 0.0)
-            if isinstance(t_toss, bool) or not isinstance(t_toss, (int, float)) or not np.isfinite(t_toss) or t_toss < 0:
-                raise DataFileError(self.index_path, f"field '{where}.t_toss': must be a finite time >= 0 [s], got {t_toss!r}")
+            if (
+                isinstance(t_toss, bool)
+                or not isinstance(t_toss, (int, float))
+                or not np.isfinite(t_toss)
+                or t_toss < 0
+            ):
+                raise DataFileError(
+                    self.index_path, f"field '{where}.t_toss': must be a finite time >= 0 [s], got {t_toss!r}"
+                )
             usage = entry.get("usage")
             if usage is not None:
                 if not isinstance(usage, dict):
@@ -297,7 +316,9 @@ class ServeLibrary:
                 for key in USAGE_KEYS:
                     n = usage.get(key, 0)
                     if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-                        raise DataFileError(self.index_path, f"field '{where}.usage.{key}': must be a non-negative integer, got {n!r}")
+                        raise DataFileError(
+                            self.index_path, f"field '{where}.usage.{key}': must be a non-negative integer, got {n!r}"
+                        )
             for key in ("net", "second_bounce"):
                 _check_ball_state(entry.get(key), f"{where}.{key}", self.index_path)
             robot = entry.get("robot")
@@ -306,7 +327,7 @@ class ServeLibrary:
             if isinstance(robot, dict) and "limit_scale" in robot:
                 LimitScale.from_json(robot["limit_scale"], source=f"{self.index_path}: {where}.robot")
             e = LibraryEntry(entry, self.folder)
-            e.serve  # validates name, side and params, naming the entry
+            _ = e.serve  # validates name, side and params, naming the entry
             out.append(e)
         return out
 
@@ -336,7 +357,12 @@ class ServeLibrary:
         raise InvalidInputError(f"serve {serve_id!r} not found in library {self.folder}")
 
     def add(
-        self, evaluation: Any, *, provenance: dict[str, Any] | None = None, task: str | None = None, preparation: Any = None,
+        self,
+        evaluation: Any,
+        *,
+        provenance: dict[str, Any] | None = None,
+        task: str | None = None,
+        preparation: Any = None,
         effort_limits: Mapping[str, float] | None = None,
     ) -> LibraryEntry:
         """Export an evaluated serve (:class:`studio.serve.evaluate.Evaluation`) with its plan.
@@ -362,10 +388,10 @@ class ServeLibrary:
         if ev.t is None or ev.u is None or ev.q is None:
             raise InvalidInputError(f"serve {ev.serve.name!r} has no motion plan to export ({ev.status}: {ev.reason})")
         self.entries()  # a corrupt library stops the export before any work (checked again under the lock)
-        from studio.serve.efforts import arrays_effort_report
         from studio.planning.serve_plan import serve_arrays  # casadi & pinocchio: not at import (dashboard)
         from studio.planning.settle import SETTLE
         from studio.robot.model import load_robot
+        from studio.serve.efforts import arrays_effort_report
 
         motion = getattr(ev, "motion", None)
         preparation = preparation if preparation is not None else getattr(motion, "preparation", None)
@@ -478,7 +504,12 @@ def request_open(folder: str | Path, serve_id: str) -> OpenRequest:
     library = ServeLibrary(folder)
     library.get(serve_id)  # must exist
     req = OpenRequest(serve_id, uuid.uuid4().hex)
-    doc = {"schema": OPEN_REQUEST_SCHEMA, "id": req.id, "nonce": req.nonce, "requested": datetime.now(UTC).isoformat(timespec="seconds")}
+    doc = {
+        "schema": OPEN_REQUEST_SCHEMA,
+        "id": req.id,
+        "nonce": req.nonce,
+        "requested": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
     _atomic_write(library.folder / OPEN_REQUEST_NAME, (json.dumps(doc) + "\n").encode("utf-8"))
     return req
 

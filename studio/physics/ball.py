@@ -51,9 +51,9 @@ from scipy.optimize import brentq, minimize_scalar
 from scipy.spatial.transform import Rotation
 
 from studio import constants as C
-from studio.physics.court import DEFAULT_COURT, Court
 from studio.errors import DataFileError, InvalidInputError
 from studio.paths import DATA_DIR
+from studio.physics.court import DEFAULT_COURT, Court
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -775,7 +775,9 @@ class RacketModel:
         wr = np.zeros(3) if omega is None else _vec3(omega, "RacketModel.bounce_moving omega")
         R = np.asarray(racket_R, dtype=float)
         if R.shape != (3, 3) or not np.all(np.isfinite(R)):
-            raise InvalidInputError(f"RacketModel.bounce_moving: racket_R must be a finite (3, 3) matrix, got {R.shape}")
+            raise InvalidInputError(
+                f"RacketModel.bounce_moving: racket_R must be a finite (3, 3) matrix, got {R.shape}"
+            )
         s = 1.0 if face_sign >= 0.0 else -1.0
         F = R * np.array([1.0, s, s])  # columns x, s*y, s*z: a proper rotation
         v2, w2 = self.bounce(F.T @ (v - vc), F.T @ (w - wr))
@@ -995,7 +997,9 @@ class SampledRacketMotion:
         self._vmax = float(np.max(np.linalg.norm(vb, axis=1)))
         self._p = p
 
-    def _far(self, lo: tuple[float, float, float], hi: tuple[float, float, float], ta: float, tb: float, dist: float) -> bool:
+    def _far(
+        self, lo: tuple[float, float, float], hi: tuple[float, float, float], ta: float, tb: float, dist: float
+    ) -> bool:
         """True if the origin stays farther than ``dist`` [m] from the box [lo, hi] over
         [ta, tb] (conservative: nearest sample plus the speed bound; hot path of :func:`simulate`)."""
         tl = self._tl
@@ -1045,11 +1049,13 @@ class SampledRacketMotion:
         uz = 1.0 - cm * (kx * kx + ky * ky)
         r0, r1, r2 = Ri
         return (
-            ox, oy, oz,
+            ox,
+            oy,
+            oz,
             r0[0] * ux + r0[1] * uy + r0[2] * uz,
             r1[0] * ux + r1[1] * uy + r1[2] * uz,
             r2[0] * ux + r2[1] * uy + r2[2] * uz,
-        )  # fmt: skip
+        )
 
     @property
     def t_start(self) -> float:
@@ -1336,13 +1342,27 @@ def simulate(
         racket_model = RacketModel.default()
     rules = _EventRules(table, net, racket_model, court, stop_on_floor, max_table_bounces)
     search = _EventSearch(flight.radius, court, racket)
-    pieces_t, pieces_y, events, t_final, end_reason = _integrate(flight, search, rules, state, float(t0), float(t_max), max_step)
+    pieces_t, pieces_y, events, t_final, end_reason = _integrate(
+        flight, search, rules, state, float(t0), float(t_max), max_step
+    )
     return _assemble(pieces_t, pieces_y, events, float(t0), t_final, dt_out, end_reason)
 
 
 def _integrate(
-    flight: FlightModel, search: _EventSearch, rules: _EventRules, state: BallState, t0: float, t_max: float, max_step: float
-) -> tuple[list[tuple[float, float]], list[tuple[list[float], list[float], list[float], list[float]]], list[Event], float, _EndReason]:
+    flight: FlightModel,
+    search: _EventSearch,
+    rules: _EventRules,
+    state: BallState,
+    t0: float,
+    t_max: float,
+    max_step: float,
+) -> tuple[
+    list[tuple[float, float]],
+    list[tuple[list[float], list[float], list[float], list[float]]],
+    list[Event],
+    float,
+    _EndReason,
+]:
     """The flight from ``state`` at ``t0`` for at most ``t_max`` [s]: RK4 steps of
     ``max_step`` with cubic Hermite dense output, each cut at its first event, where
     ``rules`` apply the impact map and decide whether to stop. Returns the pieces' time
@@ -1394,7 +1414,13 @@ def _integrate(
 
 
 def _check_simulate_args(
-    state: object, t_max: float, t0: float, dt_out: float, max_step: float, max_table_bounces: int | None, racket: object
+    state: object,
+    t_max: float,
+    t0: float,
+    dt_out: float,
+    max_step: float,
+    max_table_bounces: int | None,
+    racket: object,
 ) -> None:
     """InvalidInputError for a bad argument of :func:`simulate`."""
     if not isinstance(state, BallState):
@@ -1465,8 +1491,14 @@ class _EventSearch:
         (theta in (0, 1], ("floor", None) | ("box", obstacle) | ("racket", (side, state)))."""
         r, margin = self.r, self.margin
 
-        def pos(theta: float, _ya: list[float] = ya, _fa: list[float] = fa, _y1: list[float] = y1,
-                _f1: list[float] = f1, _h: float = h) -> list[float]:
+        def pos(
+            theta: float,
+            _ya: list[float] = ya,
+            _fa: list[float] = fa,
+            _y1: list[float] = y1,
+            _f1: list[float] = f1,
+            _h: float = h,
+        ) -> list[float]:
             return hermite(theta, _h, _ya, _fa, _y1, _f1, 3)
 
         x0, y0, z0 = ya[0], ya[1], ya[2]
@@ -1486,9 +1518,12 @@ class _EventSearch:
         # --- court boxes ---------------------------------------------------------------
         for ob in self.obstacles:
             if (
-                lo[0] > ob.c[0] + ob.h[0] or hi[0] < ob.c[0] - ob.h[0]
-                or lo[1] > ob.c[1] + ob.h[1] or hi[1] < ob.c[1] - ob.h[1]
-                or lo[2] > ob.c[2] + ob.h[2] or hi[2] < ob.c[2] - ob.h[2]
+                lo[0] > ob.c[0] + ob.h[0]
+                or hi[0] < ob.c[0] - ob.h[0]
+                or lo[1] > ob.c[1] + ob.h[1]
+                or hi[1] < ob.c[1] - ob.h[1]
+                or lo[2] > ob.c[2] + ob.h[2]
+                or hi[2] < ob.c[2] - ob.h[2]
             ):
                 continue
             th = _first_crossing(lambda th, ob=ob: _box_distance(pos(th), ob) - r, n_sub, 2e-3)
@@ -1516,7 +1551,9 @@ class _EventSearch:
         r, slab, racket_plane = self.r, self.slab, self.racket_plane
         ta_r = max(t, racket.t_start)
         tb_r = min(t + h, racket.t_end)
-        if not ta_r < tb_r or (self.racket_far is not None and self.racket_far(lo, hi, ta_r, tb_r, self.racket_reach + 0.01)):
+        if not ta_r < tb_r or (
+            self.racket_far is not None and self.racket_far(lo, hi, ta_r, tb_r, self.racket_reach + 0.01)
+        ):
             return None
         pl_a = racket_plane(ta_r)
         pl_b = racket_plane(tb_r)
@@ -1609,7 +1646,18 @@ class _EventRules:
             # racket velocity at the ball centre with the spin relative to omega: the slip at the
             # contact point is then exact (the serve contacts' convention, RacketModel.bounce_moving)
             v_a, w_a = racket_model.bounce_moving(v_b, w_b, rs.R, rs.point_velocity(p_e), s, omega=rs.omega)
-        return Event(kind=kind, t=te, p=p_e, v_before=v_b, v_after=v_a, w_before=w_b, w_after=w_a, part=part, normal=normal, side=side)
+        return Event(
+            kind=kind,
+            t=te,
+            p=p_e,
+            v_before=v_b,
+            v_after=v_a,
+            w_before=w_b,
+            w_after=w_a,
+            part=part,
+            normal=normal,
+            side=side,
+        )
 
     def stop_reason(self, event: Event, n_table: int, n_events: int) -> _EndReason | None:
         """Why :func:`simulate` ends at ``event`` (after ``n_table`` table bounces and
@@ -1658,6 +1706,4 @@ def _assemble(
     yq = (2 * t3 - 3 * t2 + 1) * ya + (t3 - 2 * t2 + th) * hh * fa + (-2 * t3 + 3 * t2) * yb + (t3 - t2) * hh * fb
     for a in (tq, yq):
         a.setflags(write=False)
-    return Trajectory(
-        t=tq, p=yq[:, 0:3], v=yq[:, 3:6], w=yq[:, 6:9], events=tuple(events), end_reason=end_reason
-    )
+    return Trajectory(t=tq, p=yq[:, 0:3], v=yq[:, 3:6], w=yq[:, 6:9], events=tuple(events), end_reason=end_reason)

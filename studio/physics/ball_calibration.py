@@ -33,6 +33,8 @@ from scipy.optimize import brentq, least_squares
 from scipy.spatial.transform import Rotation
 
 from studio import constants as C
+from studio.errors import DataFileError, InvalidInputError
+from studio.paths import DATA_DIR
 from studio.physics.ball import (
     DEFAULT_RACKET,
     RACKET_DATA_DIR,
@@ -44,8 +46,6 @@ from studio.physics.ball import (
     _local_frame,
     simulate,
 )
-from studio.errors import DataFileError, InvalidInputError
-from studio.paths import DATA_DIR
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -158,9 +158,13 @@ def load_bounce_csv(path: str | os.PathLike[str]) -> BounceRows:
                 vz_in = rec[numeric.index("v_in_z")]
                 vz_out = rec[numeric.index("v_out_z")]
                 if vz_in >= 0.0:
-                    raise DataFileError(path, f"line {line_no}, column 'v_in_z': ball must approach the face (< 0), got {vz_in}")
+                    raise DataFileError(
+                        path, f"line {line_no}, column 'v_in_z': ball must approach the face (< 0), got {vz_in}"
+                    )
                 if vz_out <= 0.0:
-                    raise DataFileError(path, f"line {line_no}, column 'v_out_z': ball must leave the face (> 0), got {vz_out}")
+                    raise DataFileError(
+                        path, f"line {line_no}, column 'v_out_z': ball must leave the face (> 0), got {vz_out}"
+                    )
     except OSError as exc:
         raise DataFileError(path, f"cannot read: {exc}") from exc
     if not values:
@@ -257,7 +261,9 @@ def load_serve_contacts_csv(path: str | os.PathLike[str] = SERVE_CONTACTS_CSV) -
     qn = np.linalg.norm(quat, axis=1)
     if np.any(qn < 0.5) or np.any(qn > 1.5):
         bad = int(np.nonzero((qn < 0.5) | (qn > 1.5))[0][0])
-        raise DataFileError(path, f"line {lines[bad]}, columns 'Orientation_*': not a unit quaternion (norm {qn[bad]:.3g})")
+        raise DataFileError(
+            path, f"line {lines[bad]}, columns 'Orientation_*': not a unit quaternion (norm {qn[bad]:.3g})"
+        )
     normal = Rotation.from_quat(quat / qn[:, None]).as_matrix()[:, :, 0]
     # the racket-fixed point at the ball centre (offset Global_d*_pre from the racket centre)
     v_point = vec["v_racket"] + np.cross(vec["w_racket"], arr[:, 22:25])
@@ -452,7 +458,9 @@ def cross_validate_sets(
     for _ in range(repeats):
         splits = [_split(len(cs.rows), folds, rng) for cs in sets]
         for j in range(folds):
-            train = [cs.subset(np.setdiff1d(np.arange(len(cs.rows)), sp[j])) for cs, sp in zip(sets, splits, strict=True)]
+            train = [
+                cs.subset(np.setdiff1d(np.arange(len(cs.rows)), sp[j])) for cs, sp in zip(sets, splits, strict=True)
+            ]
             model = fitter(train)
             for cs, sp in zip(sets, splits, strict=True):
                 held = cs.rows.subset(sp[j])
@@ -551,7 +559,10 @@ def tune_table_restitution(
     """Restitution e for which :func:`drop_test_rebound` equals ``target`` [m]."""
 
     def gap(e: float) -> float:
-        return drop_test_rebound(TableBounceModel(restitution=e, friction=friction), flight, drop_height=drop_height) - target
+        return (
+            drop_test_rebound(TableBounceModel(restitution=e, friction=friction), flight, drop_height=drop_height)
+            - target
+        )
 
     return float(brentq(gap, 0.5, 1.0, xtol=1e-6))
 
@@ -584,7 +595,9 @@ class RacketCalibration:
     """:func:`measurement_noise` per set (None where it cannot be estimated)."""
 
 
-def default_contact_sets(racket: str = DEFAULT_RACKET, serve_contacts: Path | None = SERVE_CONTACTS_CSV) -> list[ContactSet]:
+def default_contact_sets(
+    racket: str = DEFAULT_RACKET, serve_contacts: Path | None = SERVE_CONTACTS_CSV
+) -> list[ContactSet]:
     """The shipped data of a racket: its racket-at-rest rows and the robot serve contacts."""
     sets = [ContactSet("racket_bounces", load_bounce_csv(dataset_path(racket)))]
     if serve_contacts is not None:
@@ -621,7 +634,9 @@ def calibrate_racket(
         rows={cs.name: len(cs.rows) for cs in sets},
         cv=cv,
         cv_rest_only=cross_validate_sets(
-            sets, fitter=lambda tr: fit_racket_model([c for c in tr if c.name == rest[0].name]), **cv_opts  # type: ignore[arg-type]
+            sets,
+            fitter=lambda tr: fit_racket_model([c for c in tr if c.name == rest[0].name]),
+            **cv_opts,  # type: ignore[arg-type]
         ),
         cv_reference=cross_validate_sets(sets, fitter=fit_reference_model, **cv_opts),  # type: ignore[arg-type]
         before=_previous_errors(name, sets),
@@ -629,10 +644,14 @@ def calibrate_racket(
     )
 
 
-def calibrate(folds: int = 5, seed: int = 0, *, repeats: int = 1, serve_contacts: Path | None = SERVE_CONTACTS_CSV) -> dict[str, RacketCalibration]:
+def calibrate(
+    folds: int = 5, seed: int = 0, *, repeats: int = 1, serve_contacts: Path | None = SERVE_CONTACTS_CSV
+) -> dict[str, RacketCalibration]:
     """Fit every shipped racket jointly with the robot serve contacts and cross-validate."""
     return {
-        racket: calibrate_racket(default_contact_sets(racket, serve_contacts), name=racket, folds=folds, repeats=repeats, seed=seed)
+        racket: calibrate_racket(
+            default_contact_sets(racket, serve_contacts), name=racket, folds=folds, repeats=repeats, seed=seed
+        )
         for racket in RACKETS
     }
 
@@ -671,7 +690,11 @@ def write_models_json(results: dict[str, RacketCalibration], path: Path = RACKET
         ),
         "fit": {
             "racket_bounces": {"velocity_scale_m_s": VELOCITY_SCALE, "spin_scale_rad_s": SPIN_SCALE, "weight": 1.0},
-            "serve_contacts": {"velocity_scale_m_s": SERVE_VELOCITY_SCALE, "spin_scale_rad_s": SPIN_SCALE, "weight": SERVE_WEIGHT},
+            "serve_contacts": {
+                "velocity_scale_m_s": SERVE_VELOCITY_SCALE,
+                "spin_scale_rad_s": SPIN_SCALE,
+                "weight": SERVE_WEIGHT,
+            },
         },
         "models": {racket: _racket_json(res) for racket, res in results.items()},
     }
@@ -756,7 +779,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(format_table(results))
     if args.drop_test:
         e = tune_table_restitution()
-        print(f"\ntable restitution for a {C.DROP_TEST_HEIGHT * 100:.0f} cm -> {C.DROP_TEST_REBOUND * 100:.0f} cm drop test: {e:.4f}")
+        print(
+            f"\ntable restitution for a {C.DROP_TEST_HEIGHT * 100:.0f} cm -> {C.DROP_TEST_REBOUND * 100:.0f} cm drop test: {e:.4f}"
+        )
     if args.write:
         write_models_json(results)
         print(f"\nwrote {RACKET_MODELS_JSON}")

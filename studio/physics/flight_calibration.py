@@ -46,10 +46,10 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import least_squares
 
-from studio.physics.ball import FlightModel, TableBounceModel, spin_components
-from studio.physics.court import DEFAULT_COURT, Court
 from studio.errors import DataFileError, InvalidInputError
 from studio.paths import DATA_DIR, SHARED_DATA_DIR
+from studio.physics.ball import FlightModel, TableBounceModel, spin_components
+from studio.physics.court import DEFAULT_COURT, Court
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -165,9 +165,14 @@ def _rally(player: str, rally_id: str, events: list[MatchEvent], path: Path) -> 
     events = sorted(events, key=lambda e: e.index)
     for a, b in zip(events, events[1:], strict=False):
         if b.index == a.index:
-            raise DataFileError(path, f"line {b.line}, column 'rally_id': event {b.index} of {player} {rally_id} repeated (line {a.line})")
+            raise DataFileError(
+                path,
+                f"line {b.line}, column 'rally_id': event {b.index} of {player} {rally_id} repeated (line {a.line})",
+            )
         if b.t < a.t:
-            raise DataFileError(path, f"line {b.line}, column 'timestamp': time {b.t} before the previous event's {a.t} (line {a.line})")
+            raise DataFileError(
+                path, f"line {b.line}, column 'timestamp': time {b.t} before the previous event's {a.t} (line {a.line})"
+            )
     return Rally(player=player, rally_id=rally_id, events=tuple(events))
 
 
@@ -183,8 +188,11 @@ def load_match_events(path: str | os.PathLike[str] | None = None) -> tuple[Rally
     """
     path = Path(DEFAULT_MATCH_CSV if path is None else path)
     if not path.is_file():
-        raise DataFileError(path, "match data file not found (the Ace match CSV is not shipped: "
-                            "put it at ../shared/data/ace_match/ or pass its path)")
+        raise DataFileError(
+            path,
+            "match data file not found (the Ace match CSV is not shipped: "
+            "put it at ../shared/data/ace_match/ or pass its path)",
+        )
     groups: dict[tuple[str, str], list[MatchEvent]] = {}
     try:
         with path.open(newline="", encoding="utf-8") as fh:
@@ -195,7 +203,9 @@ def load_match_events(path: str | os.PathLike[str] | None = None) -> tuple[Rally
             for row in reader:
                 line = reader.line_num
                 if None in row or any(row[c] is None for c in COLUMNS):
-                    raise DataFileError(path, f"line {line}: {len(row)} fields, expected {len(reader.fieldnames or [])}")
+                    raise DataFileError(
+                        path, f"line {line}: {len(row)} fields, expected {len(reader.fieldnames or [])}"
+                    )
                 player, rid, event = _parse_row(row, line, path)
                 groups.setdefault((player, rid), []).append(event)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
@@ -297,12 +307,22 @@ def match_flights(rallies: Iterable[Rally]) -> Flights:
                 continue
             goes_on = landed and i + 2 < len(ev)
             for name, val in (
-                ("p0", a.p), ("v0", a.v), ("w0", a.w), ("t0", a.t), ("kind", _flight_kind(rally, i)),
-                ("start_event", a.kind), ("end_event", b.kind), ("p_end", b.p if landed else nan3),
-                ("t_end", b.t), ("landed", landed), ("measured_net", b.kind == "net"),
-                ("v_after", b.v if goes_on else nan3), ("w_after", b.w if goes_on else nan3),
-                ("player", rally.player), ("rally", rally.player + rally.rally_id),
-            ):  # fmt: skip
+                ("p0", a.p),
+                ("v0", a.v),
+                ("w0", a.w),
+                ("t0", a.t),
+                ("kind", _flight_kind(rally, i)),
+                ("start_event", a.kind),
+                ("end_event", b.kind),
+                ("p_end", b.p if landed else nan3),
+                ("t_end", b.t),
+                ("landed", landed),
+                ("measured_net", b.kind == "net"),
+                ("v_after", b.v if goes_on else nan3),
+                ("w_after", b.w if goes_on else nan3),
+                ("player", rally.player),
+                ("rally", rally.player + rally.rally_id),
+            ):
                 cols[name].append(val)
     if not cols["p0"]:
         raise InvalidInputError("match_flights: no flight ends at a table bounce or the net")
@@ -459,9 +479,18 @@ def _contact_fraction(h: float, ya: FloatArray, fa: FloatArray, yb: FloatArray, 
 
 
 def _net_crossing(
-    cross: BoolArray, th_hit: FloatArray, h: float, y: FloatArray, f: FloatArray, y1: FloatArray, f1: FloatArray,
-    r: float, court: Court, net: BoolArray, clear: FloatArray,
-) -> None:  # fmt: skip
+    cross: BoolArray,
+    th_hit: FloatArray,
+    h: float,
+    y: FloatArray,
+    f: FloatArray,
+    y1: FloatArray,
+    f1: FloatArray,
+    r: float,
+    court: Court,
+    net: BoolArray,
+    clear: FloatArray,
+) -> None:
     """Fill ``net`` / ``clear`` for flights crossing x = 0 in this step before their contact."""
     k = np.nonzero(cross)[0]
     sign0 = np.sign(y[k, 0])
@@ -558,10 +587,18 @@ def replay(
         flight_model, flights.v_after[has_after], flights.w_after[has_after], velocity_lag
     )
     return Replay(
-        landing_error=np.where(flights.landed, err, np.nan), time_error=np.where(flights.landed, terr, np.nan),
-        predicted_net=land.net, net_clearance=land.net_clearance, p_land=land.p, v_in=land.v, w_in=land.w,
-        v_out=v_out, w_out=w_out, v_after=v_after, velocity_lag=float(velocity_lag),
-    )  # fmt: skip
+        landing_error=np.where(flights.landed, err, np.nan),
+        time_error=np.where(flights.landed, terr, np.nan),
+        predicted_net=land.net,
+        net_clearance=land.net_clearance,
+        p_land=land.p,
+        v_in=land.v,
+        w_in=land.w,
+        v_out=v_out,
+        w_out=w_out,
+        v_after=v_after,
+        velocity_lag=float(velocity_lag),
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -612,10 +649,13 @@ def _group(flights: Flights, rep: Replay, mask: BoolArray) -> GroupFigures:
     if not np.any(m):
         return GroupFigures(0, math.nan, math.nan, math.nan, math.nan, 0)
     return GroupFigures(
-        count=int(m.sum()), median=float(np.median(e)), p90=float(np.percentile(e, 90)),
-        time_median_abs=float(np.median(np.abs(t))), time_median=float(np.median(t)),
+        count=int(m.sum()),
+        median=float(np.median(e)),
+        p90=float(np.percentile(e, 90)),
+        time_median_abs=float(np.median(np.abs(t))),
+        time_median=float(np.median(t)),
         predicted_net=int(np.sum(rep.predicted_net & m & ~flights.measured_net)),
-    )  # fmt: skip
+    )
 
 
 def summarize(flights: Flights, rep: Replay) -> ReplaySummary:
@@ -683,7 +723,9 @@ def _model_from(x: FloatArray, base: FlightModel) -> FlightModel:
     return replace(base, **{n: float(v) for n, v in zip(FIT_PARAMETERS, x, strict=False)})
 
 
-def _fit_residuals(x: FloatArray, flights: Flights, base: FlightModel, lag: float | None, time_weight: float) -> FloatArray:
+def _fit_residuals(
+    x: FloatArray, flights: Flights, base: FlightModel, lag: float | None, time_weight: float
+) -> FloatArray:
     """Landing position (2 per flight) and weighted time residuals [m]; a flight that
     never lands counts 1 m / 0.2 s."""
     model = _model_from(x, base)
@@ -729,11 +771,19 @@ def fit_flight_model(
     lo, hi = zip(*(_BOUNDS[n] for n in names), strict=True)
     x0 = np.clip(x0, np.array(lo) + 1e-9, np.array(hi) - 1e-9)
     sol = least_squares(
-        _fit_residuals, x0, args=(use, base, velocity_lag, time_weight), bounds=(lo, hi),
-        loss=loss, f_scale=f_scale, diff_step=1e-3, x_scale=[0.1, 0.1, 0.5] + [0.01] * (velocity_lag is None),
-    )  # fmt: skip
+        _fit_residuals,
+        x0,
+        args=(use, base, velocity_lag, time_weight),
+        bounds=(lo, hi),
+        loss=loss,
+        f_scale=f_scale,
+        diff_step=1e-3,
+        x_scale=[0.1, 0.1, 0.5] + [0.01] * (velocity_lag is None),
+    )
     lag = float(sol.x[-1]) if velocity_lag is None else float(velocity_lag)
-    return FlightFit(model=_model_from(sol.x, base), velocity_lag=lag, cost=float(sol.cost), nfev=int(sol.nfev), n_flights=len(use))
+    return FlightFit(
+        model=_model_from(sol.x, base), velocity_lag=lag, cost=float(sol.cost), nfev=int(sol.nfev), n_flights=len(use)
+    )
 
 
 # =====================================================================================
@@ -786,19 +836,25 @@ def cross_validate(
     for g in sorted(set(groups)):
         test = flights.subset(labels == g)
         fit = fit_flight_model(flights.subset(labels != g), initial=reference, spin_decay=spin_decay)
-        out.append(FoldResult(
-            held_out=g, n_flights=len(test),
-            before=summarize(test, replay(test, reference, velocity_lag=reference_lag)),
-            after=summarize(test, replay(test, fit.model, velocity_lag=fit.velocity_lag)),
-            fit=fit,
-        ))  # fmt: skip
+        out.append(
+            FoldResult(
+                held_out=g,
+                n_flights=len(test),
+                before=summarize(test, replay(test, reference, velocity_lag=reference_lag)),
+                after=summarize(test, replay(test, fit.model, velocity_lag=fit.velocity_lag)),
+                fit=fit,
+            )
+        )
     return tuple(out)
 
 
 def pooled_replay(flights: Flights, groups: Sequence[str], folds: Sequence[FoldResult]) -> Replay:
     """Held-out replay of every flight by the model of its fold (pooled CV figures)."""
     labels = np.array(groups)
-    parts = {f.held_out: replay(flights.subset(labels == f.held_out), f.fit.model, velocity_lag=f.fit.velocity_lag) for f in folds}
+    parts = {
+        f.held_out: replay(flights.subset(labels == f.held_out), f.fit.model, velocity_lag=f.fit.velocity_lag)
+        for f in folds
+    }
     kw: dict[str, object] = {}
     for fld in fields(Replay):
         if fld.name == "velocity_lag":
@@ -871,13 +927,17 @@ def bounce_check(flights: Flights, rep: Replay, table: TableBounceModel) -> Boun
     gain_data = (spin_components(v_in, w_meas)[0] - tb_in) / vz
     gain_model = (spin_components(v_in, w_out)[0] - tb_in) / vz
     return BounceCheck(
-        count=int(m.sum()), rms_velocity=float(np.sqrt(np.mean(dv**2))), rms_spin=float(np.sqrt(np.mean(dw**2))),
-        median_velocity=float(np.median(dv)), median_spin=float(np.median(dw)),
+        count=int(m.sum()),
+        rms_velocity=float(np.sqrt(np.mean(dv**2))),
+        rms_spin=float(np.sqrt(np.mean(dw**2))),
+        median_velocity=float(np.median(dv)),
+        median_spin=float(np.median(dw)),
         rms_tangential_velocity=float(np.sqrt(np.mean(np.sum((v_out[:, :2] - v_meas[:, :2]) ** 2, axis=1)))),
-        vz_ratio_data=float(np.median(v_meas[:, 2] / vz)), sliding_fraction=float(np.mean(sliding)),
+        vz_ratio_data=float(np.median(v_meas[:, 2] / vz)),
+        sliding_fraction=float(np.mean(sliding)),
         spin_gain_data=float(np.median(gain_data[sliding])) if np.any(sliding) else math.nan,
         spin_gain_model=float(np.median(gain_model[sliding])) if np.any(sliding) else math.nan,
-    )  # fmt: skip
+    )
 
 
 def fit_table_friction(flights: Flights, rep: Replay, restitution: float) -> float:
@@ -893,10 +953,12 @@ def fit_table_friction(flights: Flights, rep: Replay, restitution: float) -> flo
 
     def res(x: FloatArray) -> FloatArray:
         v_out, w_out = TableBounceModel(restitution=restitution, friction=float(x[0])).bounce(v_in, w_in)
-        return np.concatenate([
-            ((v_out - v_meas)[:, :2] / BOUNCE_VELOCITY_SCALE).ravel(),
-            ((w_out - w_meas)[:, :2] / BOUNCE_SPIN_SCALE).ravel(),
-        ])  # fmt: skip
+        return np.concatenate(
+            [
+                ((v_out - v_meas)[:, :2] / BOUNCE_VELOCITY_SCALE).ravel(),
+                ((w_out - w_meas)[:, :2] / BOUNCE_SPIN_SCALE).ravel(),
+            ]
+        )
 
     sol = least_squares(res, [0.25], bounds=([0.0], [1.0]), loss="soft_l1", f_scale=1.0)
     return float(sol.x[0])
@@ -965,9 +1027,14 @@ def noise_level(flights: Flights, model: FlightModel, lag: float, *, draws: int 
     sel = {k: np.tile(flights.landed & flights.kind_mask(k), draws) for k in FIT_KINDS}
     floor = {k: float(np.nanmedian(e[m])) if np.any(m) else math.nan for k, m in sel.items()}
     return NoiseLevel(
-        position=sig_p, spin=sig_w, velocity=sig_v, serve_floor=floor["serve"],
-        serve_bounce_floor=floor["serve_bounce"], rally_floor=floor["rally"], false_net_floor=float(np.mean(flips)),
-    )  # fmt: skip
+        position=sig_p,
+        spin=sig_w,
+        velocity=sig_v,
+        serve_floor=floor["serve"],
+        serve_bounce_floor=floor["serve_bounce"],
+        rally_floor=floor["rally"],
+        false_net_floor=float(np.mean(flips)),
+    )
 
 
 # =====================================================================================
@@ -1040,8 +1107,13 @@ def _cv(flights: Flights, groups: Sequence[str]) -> tuple[tuple[FoldResult, ...]
 def _round_fit(fit: FlightFit) -> FlightFit:
     """The fit with the parameters rounded as shipped (3 significant decimals, lag 0.1 ms)."""
     m = fit.model
-    model = replace(m, drag_coefficient=round(m.drag_coefficient, 3), lift_a=round(m.lift_a, 3),
-                    lift_b=round(m.lift_b, 3), spin_decay=round(m.spin_decay, 4))  # fmt: skip
+    model = replace(
+        m,
+        drag_coefficient=round(m.drag_coefficient, 3),
+        lift_a=round(m.lift_a, 3),
+        lift_b=round(m.lift_b, 3),
+        spin_decay=round(m.spin_decay, 4),
+    )
     return replace(fit, model=model, velocity_lag=round(fit.velocity_lag, 4))
 
 
@@ -1086,16 +1158,28 @@ def calibrate_flight(
     pcv, pcv_pool = _cv(flights, flights.player) if player_cv else ((), None)
     rcv, rcv_pool = _cv(flights, rally_groups(flights, folds, seed)) if rally_cv else ((), None)
     return FlightCalibration(
-        source=str(DEFAULT_MATCH_CSV if path is None else path), n_rallies=len(rallies), n_flights=len(flights),
-        flight_before=PREVIOUS_FLIGHT, fit=fit, table_before=PREVIOUS_TABLE, table_after=table,
-        before=summarize(flights, rep0), after=summarize(flights, rep1),
+        source=str(DEFAULT_MATCH_CSV if path is None else path),
+        n_rallies=len(rallies),
+        n_flights=len(flights),
+        flight_before=PREVIOUS_FLIGHT,
+        fit=fit,
+        table_before=PREVIOUS_TABLE,
+        table_after=table,
+        before=summarize(flights, rep0),
+        after=summarize(flights, rep1),
         old_model_with_lag=summarize(flights, replay(flights, PREVIOUS_FLIGHT, velocity_lag=fit.velocity_lag)),
         new_model_without_lag=summarize(flights, replay(flights, fit.model, velocity_lag=0.0)),
         shipped=summarize(flights, replay(flights, FlightModel(), TableBounceModel(), velocity_lag=VELOCITY_LAG)),
-        player_cv=pcv, player_cv_pooled=pcv_pool, rally_cv=rcv, rally_cv_pooled=rcv_pool,
-        bounce_before=bounce_check(flights, rep0, PREVIOUS_TABLE), bounce_after=bounce_check(flights, rep1, table),
-        drop_test_before=drop0, drop_test_after=drop1, noise=noise_level(flights, fit.model, fit.velocity_lag),
-    )  # fmt: skip
+        player_cv=pcv,
+        player_cv_pooled=pcv_pool,
+        rally_cv=rcv,
+        rally_cv_pooled=rcv_pool,
+        bounce_before=bounce_check(flights, rep0, PREVIOUS_TABLE),
+        bounce_after=bounce_check(flights, rep1, table),
+        drop_test_before=drop0,
+        drop_test_after=drop1,
+        noise=noise_level(flights, fit.model, fit.velocity_lag),
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -1121,24 +1205,46 @@ def _summary_rows(label: str, n: ReplaySummary, b: ReplaySummary, floor: NoiseLe
     nan = math.nan
     fl = floor or NoiseLevel(nan, nan, nan, nan, nan, nan, nan)
     rows = []
-    for key, name, fnoise in (("serve", "serve racket->1st bounce", fl.serve_floor),
-                              ("serve_bounce", "serve 1st->2nd bounce", fl.serve_bounce_floor),
-                              ("rally", "rally shot->bounce", fl.rally_floor)):  # fmt: skip
+    for key, name, fnoise in (
+        ("serve", "serve racket->1st bounce", fl.serve_floor),
+        ("serve_bounce", "serve 1st->2nd bounce", fl.serve_bounce_floor),
+        ("rally", "rally shot->bounce", fl.rally_floor),
+    ):
         gb, ga = getattr(b, key), getattr(n, key)
         ds = f"{label}{name} ({ga.count})"
         rows += [
             CalibrationRow("flight", ds, "landing error median [mm]", 1e3 * gb.median, 1e3 * ga.median, 1e3 * fnoise),
             CalibrationRow("flight", ds, "landing error p90 [mm]", 1e3 * gb.p90, 1e3 * ga.p90, nan),
-            CalibrationRow("flight", ds, "time error median |dt| [ms]", 1e3 * gb.time_median_abs, 1e3 * ga.time_median_abs, nan),
+            CalibrationRow(
+                "flight", ds, "time error median |dt| [ms]", 1e3 * gb.time_median_abs, 1e3 * ga.time_median_abs, nan
+            ),
         ]
-    rows.append(CalibrationRow("flight", f"{label}landed flights", "predicted into the net [count]",
-                               b.false_net, n.false_net, fl.false_net_floor))  # fmt: skip
-    rows.append(CalibrationRow("flight", f"{label}measured net touches ({n.measured_net})", "predicted into the net [count]",
-                               b.measured_net_predicted, n.measured_net_predicted, nan))  # fmt: skip
+    rows.append(
+        CalibrationRow(
+            "flight",
+            f"{label}landed flights",
+            "predicted into the net [count]",
+            b.false_net,
+            n.false_net,
+            fl.false_net_floor,
+        )
+    )
+    rows.append(
+        CalibrationRow(
+            "flight",
+            f"{label}measured net touches ({n.measured_net})",
+            "predicted into the net [count]",
+            b.measured_net_predicted,
+            n.measured_net_predicted,
+            nan,
+        )
+    )
     return rows
 
 
-def _cv_rows(folds: Sequence[FoldResult], pooled: ReplaySummary | None, what: str, full_before: ReplaySummary) -> list[CalibrationRow]:
+def _cv_rows(
+    folds: Sequence[FoldResult], pooled: ReplaySummary | None, what: str, full_before: ReplaySummary
+) -> list[CalibrationRow]:
     """Per-fold rally/serve medians and false nets of a cross-validation, then pooled
     (the reference model is not refitted: its pooled held-out figures are its full-data ones)."""
     nan = math.nan
@@ -1147,18 +1253,36 @@ def _cv_rows(folds: Sequence[FoldResult], pooled: ReplaySummary | None, what: st
         ds = f"{what} held out: {f.held_out}"
         for key, name in (("rally", "rally"), ("serve", "serve"), ("serve_bounce", "serve 2nd bounce")):
             gb, ga = getattr(f.before, key), getattr(f.after, key)
-            rows.append(CalibrationRow("flight", ds, f"{name} median [mm] ({ga.count})", 1e3 * gb.median, 1e3 * ga.median, nan))
-        rows.append(CalibrationRow("flight", ds, "predicted into the net [count]", f.before.false_net, f.after.false_net, nan))
+            rows.append(
+                CalibrationRow("flight", ds, f"{name} median [mm] ({ga.count})", 1e3 * gb.median, 1e3 * ga.median, nan)
+            )
+        rows.append(
+            CalibrationRow("flight", ds, "predicted into the net [count]", f.before.false_net, f.after.false_net, nan)
+        )
     if pooled is not None and folds:
         b = full_before
         rows += [
-            CalibrationRow("flight", f"{what} pooled", "rally median [mm]", 1e3 * b.rally.median, 1e3 * pooled.rally.median, nan),
-            CalibrationRow("flight", f"{what} pooled", "rally p90 [mm]", 1e3 * b.rally.p90, 1e3 * pooled.rally.p90, nan),
-            CalibrationRow("flight", f"{what} pooled", "serve median [mm]", 1e3 * b.serve.median, 1e3 * pooled.serve.median, nan),
-            CalibrationRow("flight", f"{what} pooled", "serve 2nd bounce median [mm]", 1e3 * b.serve_bounce.median,
-                           1e3 * pooled.serve_bounce.median, nan),
-            CalibrationRow("flight", f"{what} pooled", "predicted into the net [count]", b.false_net, pooled.false_net, nan),
-        ]  # fmt: skip
+            CalibrationRow(
+                "flight", f"{what} pooled", "rally median [mm]", 1e3 * b.rally.median, 1e3 * pooled.rally.median, nan
+            ),
+            CalibrationRow(
+                "flight", f"{what} pooled", "rally p90 [mm]", 1e3 * b.rally.p90, 1e3 * pooled.rally.p90, nan
+            ),
+            CalibrationRow(
+                "flight", f"{what} pooled", "serve median [mm]", 1e3 * b.serve.median, 1e3 * pooled.serve.median, nan
+            ),
+            CalibrationRow(
+                "flight",
+                f"{what} pooled",
+                "serve 2nd bounce median [mm]",
+                1e3 * b.serve_bounce.median,
+                1e3 * pooled.serve_bounce.median,
+                nan,
+            ),
+            CalibrationRow(
+                "flight", f"{what} pooled", "predicted into the net [count]", b.false_net, pooled.false_net, nan
+            ),
+        ]
     return rows
 
 
@@ -1167,15 +1291,26 @@ def _parameter_rows(res: FlightCalibration) -> list[CalibrationRow]:
     nan = math.nan
     fb, fa, tb, ta = res.flight_before, res.fit.model, res.table_before, res.table_after
     return [
-        CalibrationRow("flight", "parameter", "drag coefficient C_D [-]", fb.drag_coefficient, fa.drag_coefficient, nan),
+        CalibrationRow(
+            "flight", "parameter", "drag coefficient C_D [-]", fb.drag_coefficient, fa.drag_coefficient, nan
+        ),
         CalibrationRow("flight", "parameter", "lift_a [-] (C_L = S/(a + b S))", fb.lift_a, fa.lift_a, nan),
         CalibrationRow("flight", "parameter", "lift_b [-]", fb.lift_b, fa.lift_b, nan),
-        CalibrationRow("flight", "parameter", "C_L at S = 0.25 / 1 [-]", float(fb.lift_coefficient(0.25)), float(fa.lift_coefficient(0.25)), float(fa.lift_coefficient(1.0))),
-        CalibrationRow("flight", "parameter", "spin decay [1/m] (from w_z over bounces)", fb.spin_decay, fa.spin_decay, nan),
+        CalibrationRow(
+            "flight",
+            "parameter",
+            "C_L at S = 0.25 / 1 [-]",
+            float(fb.lift_coefficient(0.25)),
+            float(fa.lift_coefficient(0.25)),
+            float(fa.lift_coefficient(1.0)),
+        ),
+        CalibrationRow(
+            "flight", "parameter", "spin decay [1/m] (from w_z over bounces)", fb.spin_decay, fa.spin_decay, nan
+        ),
         CalibrationRow("data", "parameter", "velocity lag of the data [ms]", 0.0, 1e3 * res.fit.velocity_lag, nan),
         CalibrationRow("table", "parameter", "friction mu [-]", tb.friction, ta.friction, nan),
         CalibrationRow("table", "parameter", "restitution e [-] (drop test)", tb.restitution, ta.restitution, nan),
-    ]  # fmt: skip
+    ]
 
 
 def _bounce_rows_table(res: FlightCalibration) -> list[CalibrationRow]:
@@ -1183,16 +1318,40 @@ def _bounce_rows_table(res: FlightCalibration) -> list[CalibrationRow]:
     b, a, nz, nan = res.bounce_before, res.bounce_after, res.noise, math.nan
     ds = f"bounces ({a.count})"
     return [
-        CalibrationRow("table", ds, "post-bounce velocity error RMS [m/s]", b.rms_velocity, a.rms_velocity, math.sqrt(3) * nz.velocity),
-        CalibrationRow("table", ds, "post-bounce velocity error median [m/s]", b.median_velocity, a.median_velocity, nan),
-        CalibrationRow("table", ds, "horizontal velocity error RMS [m/s]", b.rms_tangential_velocity, a.rms_tangential_velocity, math.sqrt(2) * nz.velocity),
-        CalibrationRow("table", ds, "post-bounce spin error RMS [rad/s]", b.rms_spin, a.rms_spin, math.sqrt(3) * nz.spin),
+        CalibrationRow(
+            "table",
+            ds,
+            "post-bounce velocity error RMS [m/s]",
+            b.rms_velocity,
+            a.rms_velocity,
+            math.sqrt(3) * nz.velocity,
+        ),
+        CalibrationRow(
+            "table", ds, "post-bounce velocity error median [m/s]", b.median_velocity, a.median_velocity, nan
+        ),
+        CalibrationRow(
+            "table",
+            ds,
+            "horizontal velocity error RMS [m/s]",
+            b.rms_tangential_velocity,
+            a.rms_tangential_velocity,
+            math.sqrt(2) * nz.velocity,
+        ),
+        CalibrationRow(
+            "table", ds, "post-bounce spin error RMS [rad/s]", b.rms_spin, a.rms_spin, math.sqrt(3) * nz.spin
+        ),
         CalibrationRow("table", ds, "post-bounce spin error median [rad/s]", b.median_spin, a.median_spin, nan),
         CalibrationRow("table", ds, "data: |v_z out| / |v_z in| median [-]", b.vz_ratio_data, a.vz_ratio_data, nan),
-        CalibrationRow("table", ds, "topspin gained per m/s of v_z, data [rad/s/(m/s)]", b.spin_gain_data, a.spin_gain_data, nan),
-        CalibrationRow("table", ds, "topspin gained per m/s of v_z, model [rad/s/(m/s)]", b.spin_gain_model, a.spin_gain_model, nan),
-        CalibrationRow("table", "ITTF drop test 30 cm", "rebound [cm]", 100 * res.drop_test_before, 100 * res.drop_test_after, nan),
-    ]  # fmt: skip
+        CalibrationRow(
+            "table", ds, "topspin gained per m/s of v_z, data [rad/s/(m/s)]", b.spin_gain_data, a.spin_gain_data, nan
+        ),
+        CalibrationRow(
+            "table", ds, "topspin gained per m/s of v_z, model [rad/s/(m/s)]", b.spin_gain_model, a.spin_gain_model, nan
+        ),
+        CalibrationRow(
+            "table", "ITTF drop test 30 cm", "rebound [cm]", 100 * res.drop_test_before, 100 * res.drop_test_after, nan
+        ),
+    ]
 
 
 def calibration_rows(res: FlightCalibration) -> tuple[CalibrationRow, ...]:
@@ -1202,14 +1361,63 @@ def calibration_rows(res: FlightCalibration) -> tuple[CalibrationRow, ...]:
     rows = _parameter_rows(res)
     rows += _summary_rows("", res.after, res.before, nz)
     rows += [
-        CalibrationRow("flight", "rally (old model + lag)", "landing error median [mm]", 1e3 * res.before.rally.median, 1e3 * res.old_model_with_lag.rally.median, math.nan),
-        CalibrationRow("flight", "rally (new model, no lag)", "landing error median [mm]", 1e3 * res.before.rally.median, 1e3 * res.new_model_without_lag.rally.median, math.nan),
-        CalibrationRow("flight", "landed (old model + lag)", "predicted into the net [count]", res.before.false_net, res.old_model_with_lag.false_net, math.nan),
-        CalibrationRow("flight", "landed (new model, no lag)", "predicted into the net [count]", res.before.false_net, res.new_model_without_lag.false_net, math.nan),
-        CalibrationRow("flight", "serve (shipped model, not refitted)", "landing error median [mm]", 1e3 * res.before.serve.median, 1e3 * res.shipped.serve.median, math.nan),
-        CalibrationRow("flight", "rally (shipped model, not refitted)", "landing error median [mm]", 1e3 * res.before.rally.median, 1e3 * res.shipped.rally.median, math.nan),
-        CalibrationRow("flight", "landed (shipped model, not refitted)", "predicted into the net [count]", res.before.false_net, res.shipped.false_net, math.nan),
-    ]  # fmt: skip
+        CalibrationRow(
+            "flight",
+            "rally (old model + lag)",
+            "landing error median [mm]",
+            1e3 * res.before.rally.median,
+            1e3 * res.old_model_with_lag.rally.median,
+            math.nan,
+        ),
+        CalibrationRow(
+            "flight",
+            "rally (new model, no lag)",
+            "landing error median [mm]",
+            1e3 * res.before.rally.median,
+            1e3 * res.new_model_without_lag.rally.median,
+            math.nan,
+        ),
+        CalibrationRow(
+            "flight",
+            "landed (old model + lag)",
+            "predicted into the net [count]",
+            res.before.false_net,
+            res.old_model_with_lag.false_net,
+            math.nan,
+        ),
+        CalibrationRow(
+            "flight",
+            "landed (new model, no lag)",
+            "predicted into the net [count]",
+            res.before.false_net,
+            res.new_model_without_lag.false_net,
+            math.nan,
+        ),
+        CalibrationRow(
+            "flight",
+            "serve (shipped model, not refitted)",
+            "landing error median [mm]",
+            1e3 * res.before.serve.median,
+            1e3 * res.shipped.serve.median,
+            math.nan,
+        ),
+        CalibrationRow(
+            "flight",
+            "rally (shipped model, not refitted)",
+            "landing error median [mm]",
+            1e3 * res.before.rally.median,
+            1e3 * res.shipped.rally.median,
+            math.nan,
+        ),
+        CalibrationRow(
+            "flight",
+            "landed (shipped model, not refitted)",
+            "predicted into the net [count]",
+            res.before.false_net,
+            res.shipped.false_net,
+            math.nan,
+        ),
+    ]
     rows += _cv_rows(res.player_cv, res.player_cv_pooled, "player", res.before)
     rows += _cv_rows(res.rally_cv, res.rally_cv_pooled, "rally group", res.before)
     rows += _bounce_rows_table(res)
@@ -1217,7 +1425,7 @@ def calibration_rows(res: FlightCalibration) -> tuple[CalibrationRow, ...]:
         CalibrationRow("data", "noise", "position (bounce height scatter) [mm]", math.nan, math.nan, 1e3 * nz.position),
         CalibrationRow("data", "noise", "velocity per component, upper bound [m/s]", math.nan, math.nan, nz.velocity),
         CalibrationRow("data", "noise", "spin per state (w_z over bounces) [rad/s]", math.nan, math.nan, nz.spin),
-    ]  # fmt: skip
+    ]
     return tuple(rows)
 
 
@@ -1231,12 +1439,19 @@ def _fmt(x: float) -> str:
 def format_flight_table(res: FlightCalibration) -> str:
     """The calibration table as aligned text (model, data set, metric, before, after, noise)."""
     head = ("model", "data set", "metric", "before", "after", "noise")
-    body = [(r.model, r.data_set, r.metric, _fmt(r.before), _fmt(r.after), _fmt(r.noise)) for r in calibration_rows(res)]
+    body = [
+        (r.model, r.data_set, r.metric, _fmt(r.before), _fmt(r.after), _fmt(r.noise)) for r in calibration_rows(res)
+    ]
     width = [max(len(row[i]) for row in [head, *body]) for i in range(6)]
-    line = lambda row: "  ".join(c.ljust(w) if i < 3 else c.rjust(w) for i, (c, w) in enumerate(zip(row, width, strict=True)))  # noqa: E731
-    title = (f"Flight/table calibration on {res.source}: {res.n_rallies} rallies, {res.n_flights} flights. "
-             f"Before: previous models on the raw data; after: fitted models, velocities lag-corrected by "
-             f"{1e3 * res.fit.velocity_lag:.1f} ms; noise: the data's own scatter or what it alone explains.")  # fmt: skip
+
+    def line(row: tuple[str, ...]) -> str:
+        return "  ".join(c.ljust(w) if i < 3 else c.rjust(w) for i, (c, w) in enumerate(zip(row, width, strict=True)))
+
+    title = (
+        f"Flight/table calibration on {res.source}: {res.n_rallies} rallies, {res.n_flights} flights. "
+        f"Before: previous models on the raw data; after: fitted models, velocities lag-corrected by "
+        f"{1e3 * res.fit.velocity_lag:.1f} ms; noise: the data's own scatter or what it alone explains."
+    )
     return "\n".join([title, line(head), line(tuple("-" * w for w in width)), *(line(b) for b in body)])
 
 
@@ -1259,24 +1474,44 @@ def flight_record(res: FlightCalibration) -> dict[str, object]:
         "data_file": Path(res.source).name,
         "rallies": res.n_rallies,
         "flights": res.n_flights,
-        "flight_model": {"drag_coefficient": m.drag_coefficient, "lift_a": m.lift_a, "lift_b": m.lift_b,
-                         "spin_decay": m.spin_decay},
+        "flight_model": {
+            "drag_coefficient": m.drag_coefficient,
+            "lift_a": m.lift_a,
+            "lift_b": m.lift_b,
+            "spin_decay": m.spin_decay,
+        },
         "table_model": {"restitution": t.restitution, "friction": t.friction},
         "data_velocity_lag_s": res.fit.velocity_lag,
-        "fit": {"loss": "soft_l1", "f_scale_m": FIT_SCALE, "time_weight_m_per_s": TIME_WEIGHT,
-                "flight_kinds": list(FIT_KINDS), "cost": _json_number(res.fit.cost), "flights_fitted": res.fit.n_flights},
+        "fit": {
+            "loss": "soft_l1",
+            "f_scale_m": FIT_SCALE,
+            "time_weight_m_per_s": TIME_WEIGHT,
+            "flight_kinds": list(FIT_KINDS),
+            "cost": _json_number(res.fit.cost),
+            "flights_fitted": res.fit.n_flights,
+        },
         "player_cv_parameters": {
-            f.held_out: {"drag_coefficient": _json_number(f.fit.model.drag_coefficient), "lift_a": _json_number(f.fit.model.lift_a),
-                         "lift_b": _json_number(f.fit.model.lift_b), "spin_decay": _json_number(f.fit.model.spin_decay),
-                         "velocity_lag_s": _json_number(f.fit.velocity_lag)}
+            f.held_out: {
+                "drag_coefficient": _json_number(f.fit.model.drag_coefficient),
+                "lift_a": _json_number(f.fit.model.lift_a),
+                "lift_b": _json_number(f.fit.model.lift_b),
+                "spin_decay": _json_number(f.fit.model.spin_decay),
+                "velocity_lag_s": _json_number(f.fit.velocity_lag),
+            }
             for f in res.player_cv
         },
         "table": [
-            {"model": r.model, "data_set": r.data_set, "metric": r.metric, "before": _json_number(r.before),
-             "after": _json_number(r.after), "noise": _json_number(r.noise)}
+            {
+                "model": r.model,
+                "data_set": r.data_set,
+                "metric": r.metric,
+                "before": _json_number(r.before),
+                "after": _json_number(r.after),
+                "noise": _json_number(r.noise),
+            }
             for r in calibration_rows(res)
         ],
-    }  # fmt: skip
+    }
 
 
 def write_flight_json(res: FlightCalibration, path: Path = FLIGHT_MODEL_JSON) -> None:

@@ -173,7 +173,9 @@ def _beyond_limits(problem: StrikeProblem, C: FloatArray, Z: FloatArray) -> bool
         return False
     cmax, cmin = C.reshape(N, 24).max(axis=0).reshape(8, 3), C.reshape(N, 24).min(axis=0).reshape(8, 3)
     zmax, zmin = Z.reshape(N, 40).max(axis=0).reshape(8, 5)[:, 3:], Z.reshape(N, 40).min(axis=0).reshape(8, 5)[:, 3:]
-    return bool(np.any(cmax > hi[:, :3]) or np.any(cmin < lo[:, :3]) or np.any(zmax > hi[:, 3:]) or np.any(zmin < lo[:, 3:]))
+    return bool(
+        np.any(cmax > hi[:, :3]) or np.any(cmin < lo[:, :3]) or np.any(zmax > hi[:, 3:]) or np.any(zmin < lo[:, 3:])
+    )
 
 
 def _verdict(
@@ -194,8 +196,13 @@ def _verdict(
         return "tolerance", "racket state at tau outside tolerance: " + ", ".join(parts)
     if viol:
         i, c, tv, e = max(viol, key=lambda x: x[3])
-        what = ("command position", "command velocity", "command acceleration", "predicted position",
-                "predicted velocity")[c]  # fmt: skip
+        what = (
+            "command position",
+            "command velocity",
+            "command acceleration",
+            "predicted position",
+            "predicted velocity",
+        )[c]
         return "limits", (
             f"{what} of joint {names[i]!r} exceeds its limit by {100 * e:.3g} % "
             f"of the limit at t = {tv:.3f} s ({len(viol)} violation(s))"
@@ -204,8 +211,7 @@ def _verdict(
     if np.any(zmax > 1.0 + problem.setup.options.limit_tolerance):
         k = int(np.argmax(zmax))
         return "limits", (
-            f"command jerk of joint {names[k]!r} exceeds its limit by "
-            f"{100 * (zmax[k] - 1):.3g} % of the limit"
+            f"command jerk of joint {names[k]!r} exceeds its limit by {100 * (zmax[k] - 1):.3g} % of the limit"
         )
     return "ok", ""
 

@@ -52,28 +52,28 @@ class IpoptSolver:
 
         def take(k: int) -> ca.SX:
             nonlocal o
-            v = p[o:o + k]
+            v = p[o : o + k]
             o += k
             return v
 
         As, Bs, Z0s, S = take(400), take(80), take(40), take(40)
         p_tau, n_tau, v_tau, tol4, w, cs = take(3), take(3), take(3), take(4), take(2), take(3)
         Zs = x[:nZ]
-        z = x[nZ:nZ + nz]
-        eps = x[nZ + nz:]
+        z = x[nZ : nZ + nz]
+        eps = x[nZ + nz :]
 
         def Z_of(i: int, k: int) -> ca.SX:  # state of joint i at boundary k (1..n)
             if k == 0:
-                return Z0s[i * 5:(i + 1) * 5]
+                return Z0s[i * 5 : (i + 1) * 5]
             b = (i * n + (k - 1)) * 5
-            return Zs[b:b + 5]
+            return Zs[b : b + 5]
 
         g: list[ca.SX] = []
         for i in range(8):
             for k in range(n):
                 ph = 0 if k < n1 else 1
-                A = ca.reshape(As[(ph * 8 + i) * 25:(ph * 8 + i + 1) * 25], 5, 5).T  # row-major input
-                Bv = Bs[(ph * 8 + i) * 5:(ph * 8 + i + 1) * 5]
+                A = ca.reshape(As[(ph * 8 + i) * 25 : (ph * 8 + i + 1) * 25], 5, 5).T  # row-major input
+                Bv = Bs[(ph * 8 + i) * 5 : (ph * 8 + i + 1) * 5]
                 g.append(Z_of(i, k + 1) - (A @ Z_of(i, k) + Bv * z[i * n + k]))
         q = ca.vertcat(*[S[i * 5 + 3] * Z_of(i, n1)[3] for i in range(8)])
         qd = ca.vertcat(*[S[i * 5 + 4] * Z_of(i, n1)[4] for i in range(8)])
@@ -106,6 +106,7 @@ class IpoptSolver:
         }
         self._cache[n1] = (solver, bounds)
         return solver, bounds
+
     def solve(self, problem: StrikeProblem, seed_z: FloatArray | None, seed_s: FloatArray | None) -> SolveResult:
         """Solve ``problem`` from the scaled jerks ``seed_z`` (8, n) (default: the
         minimum-jerk jerks through ``seed_s`` (16,), else the unconstrained ones, clipped
@@ -119,7 +120,9 @@ class IpoptSolver:
             red = problem.reduced
             seed_z = np.clip(red.z_of_s(seed_s if seed_s is not None else red.s_hat), -1.0, 1.0)
         Zb = problem.boundary_states(seed_z)[1:]  # (n, 8, 5)
-        x0 = np.concatenate([(np.transpose(Zb, (1, 0, 2)) / S[:, None, :]).reshape(-1), seed_z.reshape(-1), np.zeros(3)])
+        x0 = np.concatenate(
+            [(np.transpose(Zb, (1, 0, 2)) / S[:, None, :]).reshape(-1), seed_z.reshape(-1), np.zeros(3)]
+        )
         x0 = np.clip(x0, lbx, ubx)
         try:
             sol = solver(x0=x0, p=_parameters(problem), lbx=lbx, ubx=ubx, lbg=sl["lbg"], ubg=sl["ubg"])
@@ -128,7 +131,7 @@ class IpoptSolver:
         stats = solver.stats()
         iters = int(stats.get("iter_count", 0))
         x = np.asarray(sol["x"]).reshape(-1)
-        z = x[8 * n * 5: 8 * n * 5 + 8 * n].reshape(8, n)
+        z = x[8 * n * 5 : 8 * n * 5 + 8 * n].reshape(8, n)
         rs = stats.get("return_status", "")
         if not stats.get("success", False) and rs not in ("Solved_To_Acceptable_Level",):
             if rs in ("Infeasible_Problem_Detected", "Restoration_Failed"):
@@ -155,12 +158,20 @@ def _parameters(problem: StrikeProblem) -> FloatArray:
     Z0s = g.T[:, 0, :, 0] / S
     tg = problem.target
     m = sp.options.margin
-    return np.concatenate([
-        As.reshape(-1), Bs.reshape(-1), Z0s.reshape(-1), S.reshape(-1),
-        tg.position, tg.normal, tg.velocity,
-        [m * tol[0], math.cos(m * tol[1]), 1.0 - math.cos(m * tol[1]), m * tol[2]],
-        [g.w[0], g.w[-1]], problem.cost_slack,
-    ])
+    return np.concatenate(
+        [
+            As.reshape(-1),
+            Bs.reshape(-1),
+            Z0s.reshape(-1),
+            S.reshape(-1),
+            tg.position,
+            tg.normal,
+            tg.velocity,
+            [m * tol[0], math.cos(m * tol[1]), 1.0 - math.cos(m * tol[1]), m * tol[2]],
+            [g.w[0], g.w[-1]],
+            problem.cost_slack,
+        ]
+    )
 
 
 def _bounds(problem: StrikeProblem) -> tuple[FloatArray, FloatArray]:

@@ -75,7 +75,18 @@ class SqpProblem:
     def reduced(cls, Hs: FloatArray, s_hat: FloatArray) -> SqpProblem:
         """The reduced problem: s only, cost ``1/2 (s - s_hat)^T Hs (s - s_hat)``."""
         e = np.zeros(0)
-        return cls(Q=e, Hs=Hs, s_hat=s_hat, wlo=e, whi=e, A_w=np.zeros((0, 0)), A_s=np.zeros((0, 16)), lo=e, hi=e, eq=np.zeros(0, dtype=bool))
+        return cls(
+            Q=e,
+            Hs=Hs,
+            s_hat=s_hat,
+            wlo=e,
+            whi=e,
+            A_w=np.zeros((0, 0)),
+            A_s=np.zeros((0, 16)),
+            lo=e,
+            hi=e,
+            eq=np.zeros(0, dtype=bool),
+        )
 
     @property
     def nw(self) -> int:
@@ -102,7 +113,9 @@ class SqpOutcome:
     """Why it failed ("" when it produced an iterate)."""
 
 
-def project(problem: StrikeProblem, s: FloatArray, s_lo: FloatArray, s_hi: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+def project(
+    problem: StrikeProblem, s: FloatArray, s_lo: FloatArray, s_hi: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Pull s back onto r(s) = 0 with up to 4 minimum-norm Gauss-Newton corrections
     (scaled variables, clipped to the limits ``s_lo``, ``s_hi``). Returns (s, r, J)."""
     sig = problem.setup.scaling.sig
@@ -131,7 +144,9 @@ class NewtonSqp:
         self.nr = qp.A_w.shape[0]
         self.Hs_y = qp.Hs * np.outer(sig, sig)
         self.A_ws = qp.A_s * sig[None, :] if self.nr else np.zeros((0, 16))
-        self.sense = np.concatenate([np.zeros(nw + 16), np.where(qp.eq, _EQ, 0), np.zeros(16), np.full(8, _EQ)]).astype(np.int32)
+        self.sense = np.concatenate([np.zeros(nw + 16), np.where(qp.eq, _EQ, 0), np.zeros(16), np.full(8, _EQ)]).astype(
+            np.int32
+        )
 
     def solve(self, w0: FloatArray, s0: FloatArray) -> SqpOutcome:
         """Iterate from (w0, s0); keep the best iterate by (max error, cost)."""
@@ -152,7 +167,7 @@ class NewtonSqp:
                     return SqpOutcome(w, s, qps, f"QP infeasible (DAQP exit flag {flag}): the limits cannot be met")
                 break
             lam_r = np.asarray(info["lam"])[-8:]
-            y_full = V @ x[nw:nw + 16]
+            y_full = V @ x[nw : nw + 16]
             dw = x[:nw] - w
             r_max = float(np.max(np.abs(r)))
             trial = self._reduced_step(w, s, y_full, r_max) if nw == 0 else self._funnel_step(s, y_full, r_max)
@@ -165,13 +180,18 @@ class NewtonSqp:
             # a full step, errors within 1 % of their tolerances and a cost change below 1e-4
             # of it: what is left is a Newton polish of no value (the linear rows hold at
             # every iterate; the a-posteriori check verifies the result anyway)
-            stalled = alpha == 1.0 and prev_cost is not None and key[0] < 1e-2 and abs(prev_cost - key[1]) <= 1e-4 * abs(prev_cost)
+            stalled = (
+                alpha == 1.0
+                and prev_cost is not None
+                and key[0] < 1e-2
+                and abs(prev_cost - key[1]) <= 1e-4 * abs(prev_cost)
+            )
             # Reduced problem: the full Newton steps converge quadratically (0.4, 0.15,
             # 0.01, 2e-5 typically), so after a full step below REDUCED_STEP_STOP what is
             # left changes the cost by ~1e-5 of it (measured on the benchmark's targets).
             small = REDUCED_STEP_STOP if nw == 0 and alpha == 1.0 else 1e-3
             prev_cost = key[1]
-            if best is None or (max(key[0], 0.05) , key[1]) < (max(best[0], 0.05), best[1]):
+            if best is None or (max(key[0], 0.05), key[1]) < (max(best[0], 0.05), best[1]):
                 best = (key[0], key[1], w.copy(), s.copy())
             if step < 1e-7 or (step < small and key[0] < 1e-2) or stalled:
                 break
@@ -203,10 +223,12 @@ class NewtonSqp:
         qp, sig, nw = self.qp, self.sig, self.nw
         g = sig * (qp.Hs @ (s - qp.s_hat))
         base = qp.A_s @ s if self.nr else np.zeros(0)
-        A = np.vstack([
-            np.hstack([qp.A_w, self.A_ws @ V]) if self.nr else np.zeros((0, nw + 16)),
-            np.hstack([np.zeros((24, nw)), np.vstack([V, Jy @ V])]),
-        ])
+        A = np.vstack(
+            [
+                np.hstack([qp.A_w, self.A_ws @ V]) if self.nr else np.zeros((0, nw + 16)),
+                np.hstack([np.zeros((24, nw)), np.vstack([V, Jy @ V])]),
+            ]
+        )
         bu = np.concatenate([qp.whi, np.full(16, _INF), qp.hi - base, (self.s_hi - s) / sig, -r])
         bl = np.concatenate([qp.wlo, np.full(16, -_INF), qp.lo - base, (self.s_lo - s) / sig, -r])
         f = np.concatenate([np.zeros(nw), V.T @ g])
@@ -223,12 +245,16 @@ class NewtonSqp:
         alpha = 1.0
         for _ in range(8):
             s_new, r_new, J_new = project(self.problem, s + alpha * self.sig * y_full, self.s_lo, self.s_hi)
-            if float(np.max(np.abs(r_new))) <= max(0.05, r_max) and self.qp.cost(w, s_new) <= c_old + 1e-12 * abs(c_old):
+            if float(np.max(np.abs(r_new))) <= max(0.05, r_max) and self.qp.cost(w, s_new) <= c_old + 1e-12 * abs(
+                c_old
+            ):
                 return alpha, s_new, r_new, J_new
             alpha *= 0.5
         return None
 
-    def _funnel_step(self, s: FloatArray, y_full: FloatArray, r_max: float) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+    def _funnel_step(
+        self, s: FloatArray, y_full: FloatArray, r_max: float
+    ) -> tuple[float, FloatArray, FloatArray, FloatArray]:
         """Full problem: the largest of 1, 1/2, 1/4, ... of the step that keeps the errors
         below max(_FUNNEL, 2 x current) (convex combinations keep the linear rows); the
         last trial is taken as is (w and s move by the same alpha)."""

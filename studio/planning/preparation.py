@@ -35,14 +35,25 @@ def quintic(q0: FloatArray, q1: FloatArray, T: float, dt: float) -> tuple[FloatA
     return q0[None] + p[:, None] * d, pd[:, None] * d, pdd[:, None] * d
 
 
-def _rest_to_rest(q0: FloatArray, q1: FloatArray, limits: JointLimits, dt: float) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+def _rest_to_rest(
+    q0: FloatArray, q1: FloatArray, limits: JointLimits, dt: float
+) -> tuple[float, FloatArray, FloatArray, FloatArray]:
     """Quintic minimum-jerk rest-to-rest joint motion, duration chosen from the limits
     (peak |u'| = 1.875 D/T, |u''| = 5.774 D/T^2, |u'''| = 60 D/T^3 for a distance D),
     rounded up to dt. Returns (T, u, ud, udd) sampled at the interval midpoints."""
     D = np.abs(q1 - q0)
-    T = float(np.max(np.concatenate([
-        1.875 * D / limits.velocity, np.sqrt(5.774 * D / limits.acceleration), np.cbrt(60.0 * D / limits.jerk), [dt],
-    ])))
+    T = float(
+        np.max(
+            np.concatenate(
+                [
+                    1.875 * D / limits.velocity,
+                    np.sqrt(5.774 * D / limits.acceleration),
+                    np.cbrt(60.0 * D / limits.jerk),
+                    [dt],
+                ]
+            )
+        )
+    )
     T = math.ceil(T / dt - 1e-9) * dt
     u, ud, udd = quintic(q0, q1, T, dt)
     return T, u, ud, udd
@@ -80,7 +91,9 @@ class PreparationPhase:
         return self.u.shape[0] * COMMAND_DT
 
 
-def held_quintic(robot: Robot, q0: FloatArray, u1: FloatArray, T: float, n_hold: int, dt: float) -> tuple[FloatArray, ...]:
+def held_quintic(
+    robot: Robot, q0: FloatArray, u1: FloatArray, T: float, n_hold: int, dt: float
+) -> tuple[FloatArray, ...]:
     """Quintic q0 -> u1 of duration T [s], then ``n_hold`` samples holding u1, with the
     predicted states from rest at q0: (u, ud, udd, X (P, 8, 2))."""
     pu, pud, pudd = quintic(q0, u1, T, dt)
@@ -113,7 +126,9 @@ def _cup_safe_duration(
     lo = hi = T0
     while not check.passed:
         if hi >= MAX_PREPARATION_TIME:
-            raise InvalidInputError(f"preparation: the ball does not stay in the cup even with a {hi:.2f} s motion ({check.detail})")
+            raise InvalidInputError(
+                f"preparation: the ball does not stay in the cup even with a {hi:.2f} s motion ({check.detail})"
+            )
         lo, hi = hi, min(math.ceil(2.0 * hi / dt) * dt, MAX_PREPARATION_TIME)
         parts = held_quintic(robot, q0, u1, hi, n_hold, dt)
         check = cup_check(robot, parts, dt, grip)

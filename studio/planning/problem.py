@@ -103,7 +103,9 @@ def segment_split(n: int, tau: float, tau_f: float) -> int:
     return int(min(max(round(n * tau / tau_f), 4), n - 4))
 
 
-def build_grid(dyn: JointDynamics, jmax: FloatArray, start: StrikeStart, tau: float, tau_f: float, n: int) -> StrikeGrid:
+def build_grid(
+    dyn: JointDynamics, jmax: FloatArray, start: StrikeStart, tau: float, tau_f: float, n: int
+) -> StrikeGrid:
     """The grid of ``n`` segments with tau [s] at a boundary, and the affine maps of the
     boundary states from the start state and the jerks scaled by ``jmax`` (8,)."""
     n1 = segment_split(n, tau, tau_f)
@@ -164,9 +166,11 @@ class StrikeProblem:
         tol = o.tolerances
         self.tol = np.array([tol.position, tol.angle, tol.velocity(target.velocity)])
         """Position [m], angle [rad] and velocity [m/s] tolerances at tau."""
-        self.cost_slack = o.slack_scale * np.array(
-            [o.slack_weights.position, o.slack_weights.normal, o.slack_weights.velocity]
-        ) * self.tol
+        self.cost_slack = (
+            o.slack_scale
+            * np.array([o.slack_weights.position, o.slack_weights.normal, o.slack_weights.velocity])
+            * self.tol
+        )
         """Cost of one tolerance of slack (3,) (IPOPT formulation)."""
         nt = target.normal
         a = np.array([1.0, 0.0, 0.0]) if abs(nt[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
@@ -202,7 +206,9 @@ class StrikeProblem:
         """The time grid and boundary-state maps (built on first use)."""
         if self._grid is None:
             sp = self.setup
-            self._grid = build_grid(sp.dynamics, sp.scaling.jmax, self.start, self.target.tau, self.target.tau_f, self.n)
+            self._grid = build_grid(
+                sp.dynamics, sp.scaling.jmax, self.start, self.target.tau, self.target.tau_f, self.n
+            )
         return self._grid
 
     def s_of_z(self, z: FloatArray) -> FloatArray:
@@ -266,9 +272,9 @@ class StrikeProblem:
         else:
             r[3:5] = self.tangent @ o[3:6] / tn
             J[3:5, :8] = (self.tangent / tn) @ jac[1].T
-        r[3 + k:] = (o[6:9] - tg.velocity) / tv
-        J[3 + k:, :8] = jac[2].T / tv
-        J[3 + k:, 8:] = jac[3].T / tv
+        r[3 + k :] = (o[6:9] - tg.velocity) / tv
+        J[3 + k :, :8] = jac[2].T / tv
+        J[3 + k :, 8:] = jac[3].T / tv
         return r, J
 
     def residual_hessian(self, s: FloatArray, lam: FloatArray) -> FloatArray:
@@ -294,8 +300,8 @@ class StrikeProblem:
         g, n = self.grid, self.n
         M = np.zeros((16, 8 * n))
         for i in range(8):
-            M[i, i * n:(i + 1) * n] = g.T[i, g.n1, 3, 1:]
-            M[8 + i, i * n:(i + 1) * n] = g.T[i, g.n1, 4, 1:]
+            M[i, i * n : (i + 1) * n] = g.T[i, g.n1, 3, 1:]
+            M[8 + i, i * n : (i + 1) * n] = g.T[i, g.n1, 4, 1:]
         m0 = np.concatenate([g.T[:, g.n1, 3, 0], g.T[:, g.n1, 4, 0]])
         return M, m0
 
@@ -316,7 +322,7 @@ class StrikeProblem:
             if k < n:
                 coef[1 + k] += B_d[r, i, c] * sc_.jmax[i]
             sc = sc_.row_scale[i, c]
-            rows[r, i * n:(i + 1) * n] = coef[1:] / sc
+            rows[r, i * n : (i + 1) * n] = coef[1:] / sc
             lo[r] = (sc_.row_lo[i, c] - coef[0]) / sc + ROW_MARGIN
             hi[r] = (sc_.row_hi[i, c] - coef[0]) / sc - ROW_MARGIN
             keep[r] = bool(np.any(np.abs(coef[1:]) > 1e-14))
@@ -329,7 +335,9 @@ class StrikeProblem:
         Z = g.T[..., 0] + np.einsum("ikcj,ij->ikc", g.T[..., 1:], z)  # (8, n+1, 5)
         return np.transpose(Z, (1, 0, 2))
 
-    def chain_at(self, z: FloatArray, times: FloatArray, *, commands_only: bool = False, on_grid: bool = False) -> FloatArray:
+    def chain_at(
+        self, z: FloatArray, times: FloatArray, *, commands_only: bool = False, on_grid: bool = False
+    ) -> FloatArray:
         """Exact chain state Z = [u, u', u'', q, q'] (N, 8, 5) at times (N,) [s] for the
         scaled jerks z (8, n); after tau_f the command rests at u_tauf (zero jerk).
         ``on_grid``: times are k dt, k = 0..N-1 (the 1 kHz output), which lets the free
@@ -398,7 +406,13 @@ def _reduced_hessian(K: FloatArray) -> FloatArray:
 
 
 def _free_response_on_grid(
-    table: FreeResponseTable, times: FloatArray, tb: FloatArray, k: npt.NDArray[np.intp], n: int, wn: FloatArray, zeta: FloatArray
+    table: FreeResponseTable,
+    times: FloatArray,
+    tb: FloatArray,
+    k: npt.NDArray[np.intp],
+    n: int,
+    wn: FloatArray,
+    zeta: FloatArray,
 ) -> tuple[FloatArray, FloatArray]:
     """(e^{-a d} s(d), e^{-a d} c(d)) (N, 8) at the 1 kHz ``times`` (N,) from the table:
     exp(lam d) = exp(lam j dt) exp(lam phi_k), d = j dt + phi_k, phi_k the offset of the

@@ -92,8 +92,14 @@ class ServeArrays:
 
 
 def serve_arrays(
-    t: npt.ArrayLike, u: npt.ArrayLike, q: npt.ArrayLike, qd: npt.ArrayLike | None, dynamics: JointDynamics, *,
-    preparation: PreparationPhase | None = None, tol: SettleTolerance = SETTLE,
+    t: npt.ArrayLike,
+    u: npt.ArrayLike,
+    q: npt.ArrayLike,
+    qd: npt.ArrayLike | None,
+    dynamics: JointDynamics,
+    *,
+    preparation: PreparationPhase | None = None,
+    tol: SettleTolerance = SETTLE,
 ) -> ServeArrays:
     """Assemble the exported arrays of a motion (toss clock: times t (M,) [s] at 1 kHz,
     commands u, predicted q and qd (M, 8); qd None: central differences of q): the
@@ -101,36 +107,48 @@ def serve_arrays(
     the hold of its last command until the joints settle (``tol``)."""
     T, U, Q = (np.asarray(a, dtype=float) for a in (t, u, q))
     if T.ndim != 1 or T.size < 2 or U.shape != (T.size, 8) or Q.shape != U.shape:
-        raise InvalidInputError(f"serve_arrays: t (M >= 2,), u and q (M, 8) expected, got {T.shape}, {U.shape}, {Q.shape}")
+        raise InvalidInputError(
+            f"serve_arrays: t (M >= 2,), u and q (M, 8) expected, got {T.shape}, {U.shape}, {Q.shape}"
+        )
     dt = float(T[1] - T[0])
     QD = np.gradient(Q, T, axis=0) if qd is None else np.asarray(qd, dtype=float)
     tail = settle_hold(U[-1], np.stack([Q[-1], QD[-1]], axis=1), dynamics, dt=dt, tol=tol)
     n = tail.shape[0]
     T = np.concatenate([T, T[-1] + dt * np.arange(1, n + 1)])
-    U, Q, QD = np.vstack([U, np.repeat(U[-1:], n, axis=0)]), np.vstack([Q, tail[:, :, 0]]), np.vstack([QD, tail[:, :, 1]])
+    U, Q, QD = (
+        np.vstack([U, np.repeat(U[-1:], n, axis=0)]),
+        np.vstack([Q, tail[:, :, 0]]),
+        np.vstack([QD, tail[:, :, 1]]),
+    )
     if preparation is None:
         return ServeArrays(T, U, Q, QD, float(T[0]), n)
     P = preparation.u.shape[0]
     t_toss = P * dt
     return ServeArrays(
-        np.concatenate([np.arange(P) * dt, T - T[0] + t_toss]), np.vstack([preparation.u, U]),
-        np.vstack([preparation.q, Q]), np.vstack([preparation.qd, QD]), t_toss, n,
-    )  # fmt: skip
+        np.concatenate([np.arange(P) * dt, T - T[0] + t_toss]),
+        np.vstack([preparation.u, U]),
+        np.vstack([preparation.q, Q]),
+        np.vstack([preparation.qd, QD]),
+        t_toss,
+        n,
+    )
 
 
-def serve_cup_check(robot: Robot, preparation: PreparationPhase, toss: object, *, grip: CupGrip | None = None) -> CupHoldCheck:
+def serve_cup_check(
+    robot: Robot, preparation: PreparationPhase, toss: object, *, grip: CupGrip | None = None
+) -> CupHoldCheck:
     """The ball-in-cup check of preparation + toss on the serve clock (t = 0 at the start of
     the preparation), at every 1 kHz sample before the toss's predicted release from the
     cup (``toss.release.time``, where the normal load vanishes; the ball flies from then on).
 
     ``toss``: a :class:`studio.toss.primitive.TossPrimitive` (u, X, release, dt)."""
-    dt = float(getattr(toss, "dt"))
-    tu, tX = np.asarray(getattr(toss, "u")), np.asarray(getattr(toss, "X"))
+    dt = float(toss.dt)
+    tu, tX = np.asarray(toss.u), np.asarray(toss.X)
     P = preparation.u.shape[0]
     t = np.arange(P + tu.shape[0]) * dt
     u = np.vstack([preparation.u, tu])
     q, qd = np.vstack([preparation.q, tX[:, :, 0]]), np.vstack([preparation.qd, tX[:, :, 1]])
-    t_end = P * dt + float(getattr(toss, "release").time)
+    t_end = P * dt + float(toss.release.time)
     return check_cup_hold(robot, t, u, q, qd, t_end=t_end, grip=grip)
 
 

@@ -46,7 +46,14 @@ SETTLE: Final[SettleTolerance] = SettleTolerance()
 """Default rest tolerances of exported serves."""
 
 
-def settle_hold(u_end: npt.ArrayLike, X_end: npt.ArrayLike, dynamics: JointDynamics, *, dt: float = COMMAND_DT, tol: SettleTolerance = SETTLE) -> FloatArray:
+def settle_hold(
+    u_end: npt.ArrayLike,
+    X_end: npt.ArrayLike,
+    dynamics: JointDynamics,
+    *,
+    dt: float = COMMAND_DT,
+    tol: SettleTolerance = SETTLE,
+) -> FloatArray:
     """Predicted states (n, 8, 2) at t_end + dt, ..., t_end + n dt of the joints holding the
     command ``u_end`` (8,) that is sent at t_end, from their state ``X_end`` (8, 2) at t_end.
 

@@ -135,7 +135,7 @@ def levenberg_marquardt(
     f = F(s, r)
     lam = 1e-3
     it = 0
-    for it in range(3 * problem.setup.options.max_iterations):
+    for it in range(3 * problem.setup.options.max_iterations):  # noqa: B007  (the count is returned)
         Jy = J * sig[None, :]
         g = Jy.T @ r + sig * (H @ (s - s_hat))
         A = Jy.T @ Jy + Hy

@@ -172,15 +172,35 @@ class Plan:
         return replace(self, status=status, reason=reason)
 
     @classmethod
-    def empty(cls, status: PlanStatus, reason: str, target: StrikeTarget, start: StrikeStart, solve_time_ms: float) -> Plan:
+    def empty(
+        cls, status: PlanStatus, reason: str, target: StrikeTarget, start: StrikeStart, solve_time_ms: float
+    ) -> Plan:
         """A plan without a trajectory (refused inputs, or no solver produced one): empty
         arrays, NaN errors and joint states at tau."""
         e8 = np.zeros((0, 8))
         nanv = np.full(8, np.nan)
         return cls(
-            status=status, reason=reason, target=target, start=start, t=np.zeros(0), u=e8, ud=e8,
-            udd=e8, q=e8, qd=e8, segment_times=np.zeros(0), n_tau=0, jerk=np.zeros((0, 8)), q_tau=nanv,
-            qd_tau=nanv, position_error=math.nan, angle_error=math.nan, velocity_error=math.nan,
-            slacks=np.full(3, np.nan), jerk_cost=math.nan, solver="", iterations=0, solve_time_ms=solve_time_ms,
-        )  # fmt: skip
-
+            status=status,
+            reason=reason,
+            target=target,
+            start=start,
+            t=np.zeros(0),
+            u=e8,
+            ud=e8,
+            udd=e8,
+            q=e8,
+            qd=e8,
+            segment_times=np.zeros(0),
+            n_tau=0,
+            jerk=np.zeros((0, 8)),
+            q_tau=nanv,
+            qd_tau=nanv,
+            position_error=math.nan,
+            angle_error=math.nan,
+            velocity_error=math.nan,
+            slacks=np.full(3, np.nan),
+            jerk_cost=math.nan,
+            solver="",
+            iterations=0,
+            solve_time_ms=solve_time_ms,
+        )

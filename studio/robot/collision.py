@@ -58,8 +58,8 @@ import numpy as np
 import numpy.typing as npt
 import pinocchio as pin
 
-from studio.physics.court import DEFAULT_COURT, Box, Court
 from studio.errors import InvalidInputError, RobotModelError
+from studio.physics.court import DEFAULT_COURT, Box, Court
 from studio.robot.model import Robot
 
 FloatArray = npt.NDArray[np.float64]
@@ -271,7 +271,6 @@ class CollisionChecker:
         Two levels: one sphere per link, then per geometry: spheres against spheres,
         spheres against oriented robot boxes, world AABBs (sphere, or the box's own
         when tighter) against the axis-aligned court boxes and the floor."""
-        N = qq.shape[0]
         Pj, Rj = self._fk(qq)  # (N, njoints, 3), (N, njoints, 3, 3)
         J = np.array(self._joints)
         Cj = Pj[:, J] + np.einsum("njab,jb->nja", Rj[:, J], self._j_c)  # (N, nJ, 3)
@@ -311,7 +310,9 @@ class CollisionChecker:
             env_lo = np.vstack([env_lo, [-np.inf, -np.inf, -np.inf]])
             env_hi = np.vstack([env_hi, [np.inf, np.inf, self._floor_z]])
         if env_lo.size:
-            gap = np.maximum(env_lo[None, None] - Cj[:, :, None], 0.0) + np.maximum(Cj[:, :, None] - env_hi[None, None], 0.0)
+            gap = np.maximum(env_lo[None, None] - Cj[:, :, None], 0.0) + np.maximum(
+                Cj[:, :, None] - env_hi[None, None], 0.0
+            )
             sj = np.flatnonzero(np.any(np.linalg.norm(gap, axis=-1) < self._j_r[None, :, None], axis=(1, 2)))
             if sj.size:
                 G = self._n_robot
@@ -320,8 +321,12 @@ class CollisionChecker:
                 ext = np.broadcast_to(r[None, :, None], C.shape).copy()
                 is_box = ~np.isnan(self._halves[:, 0])
                 if np.any(is_box):
-                    ext[:, is_box] = np.minimum(ext[:, is_box], np.einsum("sgij,gj->sgi", np.abs(R[:, is_box]), self._halves[is_box]))
-                over = ~np.any((env_lo[None, None] > (C + ext)[:, :, None]) | ((C - ext)[:, :, None] > env_hi[None, None]), axis=-1)
+                    ext[:, is_box] = np.minimum(
+                        ext[:, is_box], np.einsum("sgij,gj->sgi", np.abs(R[:, is_box]), self._halves[is_box])
+                    )
+                over = ~np.any(
+                    (env_lo[None, None] > (C + ext)[:, :, None]) | ((C - ext)[:, :, None] > env_hi[None, None]), axis=-1
+                )
                 si, gi, bi = np.nonzero(over)
                 pairs = self._box_pairs
                 if self._floor_pairs is not None:
@@ -657,7 +662,11 @@ class _BatchJointFK:
             else:
                 K = np.array([[0.0, -ax[2], ax[1]], [ax[2], 0.0, -ax[0]], [-ax[1], ax[0], 0.0]])
                 th = q[:, iq]
-                Rot = np.eye(3)[None] + np.sin(th)[:, None, None] * K[None] + (1.0 - np.cos(th))[:, None, None] * (K @ K)[None]
+                Rot = (
+                    np.eye(3)[None]
+                    + np.sin(th)[:, None, None] * K[None]
+                    + (1.0 - np.cos(th))[:, None, None] * (K @ K)[None]
+                )
                 Rj = Rj @ Rot
             P[:, j] = Pj
             R[:, j] = Rj

@@ -37,8 +37,8 @@ import pinocchio as pin
 
 from studio import constants as C
 from studio.errors import InvalidInputError
-from studio.robot.model import Robot
 from studio.robot.description import BALL_CUP_FRAME, RacketSpec
+from studio.robot.model import Robot
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -109,7 +109,13 @@ def _default_drag() -> float:
 
 
 def cup_specific_force(
-    robot: Robot, q: npt.ArrayLike, qd: npt.ArrayLike, qdd: npt.ArrayLike, *, gravity: float = C.GRAVITY, drag_k: float = 0.0
+    robot: Robot,
+    q: npt.ArrayLike,
+    qd: npt.ArrayLike,
+    qdd: npt.ArrayLike,
+    *,
+    gravity: float = C.GRAVITY,
+    drag_k: float = 0.0,
 ) -> FloatArray:
     """Specific force the cup gives the ball, f = a - g + k |v| v (N, 3) [m/s^2], of the
     ball's centre in the cup (frame ``ball_cup``), in the cup frame (z = cup axis = face-A
@@ -117,7 +123,9 @@ def cup_specific_force(
     v of the frame (centripetal terms included), the ball's drag constant ``drag_k`` [1/m]."""
     Q, V, A = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (q, qd, qdd))
     if not (Q.shape == V.shape == A.shape and Q.shape[1:] == (robot.nq,)):
-        raise InvalidInputError(f"cup_specific_force: q, qd, qdd must all be (N, {robot.nq}), got {Q.shape}, {V.shape}, {A.shape}")
+        raise InvalidInputError(
+            f"cup_specific_force: q, qd, qdd must all be (N, {robot.nq}), got {Q.shape}, {V.shape}, {A.shape}"
+        )
     model, data, fid = robot.model, robot.data, robot.frame_id(BALL_CUP_FRAME)
     g = np.array([0.0, 0.0, -gravity])
     out = np.empty((Q.shape[0], 3))
@@ -164,14 +172,26 @@ class CupHoldCheck:
         """JSON-ready fields (``worst_ratio`` None where the normal load vanished: inf)."""
         ratio = self.worst_ratio if math.isfinite(self.worst_ratio) else None
         return {
-            "passed": self.passed, "limit": self.limit, "worst_ratio": ratio, "at": self.at,
-            "min_normal": self.min_normal, "t_start": self.t_start, "t_end": self.t_end,
-        }  # fmt: skip
+            "passed": self.passed,
+            "limit": self.limit,
+            "worst_ratio": ratio,
+            "at": self.at,
+            "min_normal": self.min_normal,
+            "t_start": self.t_start,
+            "t_end": self.t_end,
+        }
 
 
 def check_cup_hold(
-    robot: Robot, t: npt.ArrayLike, u: npt.ArrayLike, q: npt.ArrayLike, qd: npt.ArrayLike, *,
-    t_end: float | None = None, grip: CupGrip | None = None, drag_k: float | None = None,
+    robot: Robot,
+    t: npt.ArrayLike,
+    u: npt.ArrayLike,
+    q: npt.ArrayLike,
+    qd: npt.ArrayLike,
+    *,
+    t_end: float | None = None,
+    grip: CupGrip | None = None,
+    drag_k: float | None = None,
 ) -> CupHoldCheck:
     """Check the ball-in-cup cone at every sample with t_k < ``t_end`` (default: all) of a
     motion: times t (N,) [s], commands u (zero-order hold), predicted joint states q, qd

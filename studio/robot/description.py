@@ -560,7 +560,9 @@ def _parse_racket(rr: _Reader, rc: _Reader) -> RacketSpec:
         raise rc.err("plate_radius", "must be >= rim_radius + wall_thickness")
     sag = spec.ball_radius - math.sqrt(spec.ball_radius**2 - spec.cup_rim_radius**2)
     if sag >= spec.cup_wall_height:
-        raise rc.err("wall_height", f"must exceed the ball's sag below the rim ({sag:.4f} m) so it does not touch the plate")
+        raise rc.err(
+            "wall_height", f"must exceed the ball's sag below the rim ({sag:.4f} m) so it does not touch the plate"
+        )
     return spec
 
 
@@ -697,7 +699,9 @@ _RACKET_COLORS: Final[dict[str, tuple[float, float, float, float]]] = {
 
 def _racket_geom_names(r: RacketSpec) -> tuple[str, ...]:
     adapter = ("racket_adapter",) if r.adapter_length > 0 else ()
-    return adapter + ("handle", RACKET_BLADE_GEOM, "cup_plate") + tuple(f"cup_wall_{k}" for k in range(r.cup_wall_count))
+    return (
+        adapter + ("handle", RACKET_BLADE_GEOM, "cup_plate") + tuple(f"cup_wall_{k}" for k in range(r.cup_wall_count))
+    )
 
 
 def racket_geoms(r: RacketSpec) -> tuple[GeomSpec, ...]:
@@ -730,13 +734,48 @@ def racket_geoms(r: RacketSpec) -> tuple[GeomSpec, ...]:
         out.append(GeomSpec(name, kind, use, xyz, rpy, size, radius, length, _RACKET_COLORS[color]))
 
     if r.adapter_length > 0:
-        add("racket_adapter", "cylinder", "both", (0.0, adapter_y, 0.0), (half_pi, 0.0, 0.0), radius=r.adapter_radius, length=r.adapter_length, color="flange")
-    add("handle", "box", "both", (0.0, handle_y, 0.0), (0.0, 0.0, 0.0), size=(r.handle_width, r.handle_length, r.handle_thickness), color="wood")
-    add(RACKET_BLADE_GEOM, "cylinder", "collision", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), radius=blade_r, length=2 * h, color="red")
+        add(
+            "racket_adapter",
+            "cylinder",
+            "both",
+            (0.0, adapter_y, 0.0),
+            (half_pi, 0.0, 0.0),
+            radius=r.adapter_radius,
+            length=r.adapter_length,
+            color="flange",
+        )
+    add(
+        "handle",
+        "box",
+        "both",
+        (0.0, handle_y, 0.0),
+        (0.0, 0.0, 0.0),
+        size=(r.handle_width, r.handle_length, r.handle_thickness),
+        color="wood",
+    )
+    add(
+        RACKET_BLADE_GEOM,
+        "cylinder",
+        "collision",
+        (0.0, 0.0, 0.0),
+        (0.0, 0.0, 0.0),
+        radius=blade_r,
+        length=2 * h,
+        color="red",
+    )
     add("face_a", "cylinder", "visual", (0.0, 0.0, 0.5 * h), (0.0, 0.0, 0.0), radius=blade_r, length=h, color="red")
     add("face_b", "cylinder", "visual", (0.0, 0.0, -0.5 * h), (0.0, 0.0, 0.0), radius=blade_r, length=h, color="black")
     z_plate = 0.5 * r.handle_thickness + 0.5 * r.cup_plate_thickness
-    add("cup_plate", "cylinder", "both", (0.0, r.cup_y, z_plate), (0.0, 0.0, 0.0), radius=r.cup_plate_radius, length=r.cup_plate_thickness, color="cup")
+    add(
+        "cup_plate",
+        "cylinder",
+        "both",
+        (0.0, r.cup_y, z_plate),
+        (0.0, 0.0, 0.0),
+        radius=r.cup_plate_radius,
+        length=r.cup_plate_thickness,
+        color="cup",
+    )
     r_in = r.cup_rim_radius
     r_mid = r_in + 0.5 * r.cup_wall_thickness
     n = r.cup_wall_count
@@ -772,7 +811,15 @@ def full_tree(spec: RobotSpec) -> tuple[tuple[LinkSpec, ...], tuple[JointSpec, .
     cup_link = LinkSpec(BALL_CUP_FRAME, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), ())
     zero3 = (0.0, 0.0, 0.0)
     joints = list(spec.joints) + [
-        JointSpec(f"{r.parent}_to_racket", "fixed", r.parent, RACKET_FRAME, (0.0, 0.0, r.mount_offset), _racket_mount_rpy(), zero3),
+        JointSpec(
+            f"{r.parent}_to_racket",
+            "fixed",
+            r.parent,
+            RACKET_FRAME,
+            (0.0, 0.0, r.mount_offset),
+            _racket_mount_rpy(),
+            zero3,
+        ),
         JointSpec("racket_to_ball_cup", "fixed", RACKET_FRAME, BALL_CUP_FRAME, r.ball_centre, zero3, zero3),
     ]
     links = list(spec.links) + [racket_link, cup_link]

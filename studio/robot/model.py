@@ -172,7 +172,7 @@ class JointDynamics:
         """Continuous-time matrices: X' = A X + B u per joint; A (n, 2, 2), B (n, 2)."""
         A = np.zeros((self.n, 2, 2))
         A[:, 0, 1] = 1.0
-        A[:, 1, 0] = -self.wn**2
+        A[:, 1, 0] = -(self.wn**2)
         A[:, 1, 1] = -2.0 * self.zeta * self.wn
         B = np.zeros((self.n, 2))
         B[:, 1] = self.wn**2
@@ -199,7 +199,7 @@ class JointDynamics:
         A[:, 1, 2] = 1.0
         A[:, 3, 4] = 1.0
         A[:, 4, 0] = self.wn**2
-        A[:, 4, 3] = -self.wn**2
+        A[:, 4, 3] = -(self.wn**2)
         A[:, 4, 4] = -2.0 * self.zeta * self.wn
         B = np.zeros((self.n, 5))
         B[:, 2] = 1.0
@@ -406,7 +406,9 @@ class Robot:
         fid = self.frame_id(name)
         self._fk(q)
         M = self.data.oMf[fid]
-        return RacketPose(position=_frozen(M.translation, (3,), "position"), rotation=_frozen(M.rotation, (3, 3), "rotation"))
+        return RacketPose(
+            position=_frozen(M.translation, (3,), "position"), rotation=_frozen(M.rotation, (3, 3), "rotation")
+        )
 
     def frame_position(self, name: str, q: npt.ArrayLike) -> FloatArray:
         """World position (3,) [m] of the origin of frame ``name`` at configuration q (8,)."""
@@ -457,7 +459,9 @@ class Robot:
         Not included: drive inertia (the MJCF's armature), friction, the ball."""
         Q, V, A = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (q, qd, qdd))
         if not (Q.shape == V.shape == A.shape and Q.shape[1:] == (NQ,)):
-            raise InvalidInputError(f"joint_efforts: q, qd, qdd must all be (N, {NQ}), got {Q.shape}, {V.shape}, {A.shape}")
+            raise InvalidInputError(
+                f"joint_efforts: q, qd, qdd must all be (N, {NQ}), got {Q.shape}, {V.shape}, {A.shape}"
+            )
         if not (np.all(np.isfinite(Q)) and np.all(np.isfinite(V)) and np.all(np.isfinite(A))):
             raise InvalidInputError("joint_efforts: q, qd and qdd must be finite")
         model, data = self.model, self.data

@@ -27,9 +27,9 @@ import numpy.typing as npt
 from studio.errors import InvalidInputError
 
 if TYPE_CHECKING:
-    from studio.serve.evaluate import ServeMotion
     from studio.planning.serve_plan import ServeArrays
     from studio.robot.model import Robot
+    from studio.serve.evaluate import ServeMotion
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -85,15 +85,25 @@ class EffortReport:
     def raised_to_peaks(self) -> EffortReport:
         """Every exceeded joint's limit raised to its peak rounded up to 1 % (the studio's
         "export beyond the effort limits")."""
-        return self.with_limits({n: _round_up(float(p)) for n, p, u in zip(self.names, self.peak, self.usage) if u > 1.0})
+        return self.with_limits(
+            {n: _round_up(float(p)) for n, p, u in zip(self.names, self.peak, self.usage) if u > 1.0}
+        )
 
     def require_within(self) -> None:
         """Raise :class:`EffortLimitError` naming every exceeded joint, its peak and limit,
         and how to raise the limit."""
         if self.within:
             return
-        rows = ", ".join(f"{n} {p:.4g} > {lim:.4g} ({100 * p / lim:.0f} %)" for n, p, lim in zip(self.names, self.peak, self.limit) if p > lim)
-        flags = " ".join(f"--effort-limit {n}={_round_up(float(p)):g}" for n, p, lim in zip(self.names, self.peak, self.limit) if p > lim)
+        rows = ", ".join(
+            f"{n} {p:.4g} > {lim:.4g} ({100 * p / lim:.0f} %)"
+            for n, p, lim in zip(self.names, self.peak, self.limit)
+            if p > lim
+        )
+        flags = " ".join(
+            f"--effort-limit {n}={_round_up(float(p)):g}"
+            for n, p, lim in zip(self.names, self.peak, self.limit)
+            if p > lim
+        )
         raise EffortLimitError(
             f"the plan needs more than the effort limits allow: {rows} [N | N m]; export refused. "
             f"Lower the serve's limit scale, or raise the limit on purpose if the drive allows it ({flags})"
@@ -101,9 +111,15 @@ class EffortReport:
 
     def to_json(self) -> dict[str, Any]:
         return {
-            "names": list(self.names), "peak": _floats(self.peak), "at": _floats(self.at), "limit": _floats(self.limit),
-            "usage": _floats(self.usage), "within": self.within, "exceeded": list(self.exceeded), "raised": list(self.raised),
-        }  # fmt: skip
+            "names": list(self.names),
+            "peak": _floats(self.peak),
+            "at": _floats(self.at),
+            "limit": _floats(self.limit),
+            "usage": _floats(self.usage),
+            "within": self.within,
+            "exceeded": list(self.exceeded),
+            "raised": list(self.raised),
+        }
 
     def headline(self) -> str:
         """One Markdown line: within the limits (most used joint) or which joints exceed them."""
@@ -133,7 +149,9 @@ def arrays_effort_report(robot: Robot, arrays: ServeArrays) -> EffortReport:
     tau = np.abs(robot.joint_efforts(arrays.q, arrays.qd, joint_accelerations(robot, arrays.u, arrays.q, arrays.qd)))
     k = np.argmax(tau, axis=0)
     cols = np.arange(tau.shape[1])
-    return EffortReport(robot.joint_names, tau[k, cols], np.asarray(arrays.t)[k], np.asarray(robot.effort_limits, dtype=float))
+    return EffortReport(
+        robot.joint_names, tau[k, cols], np.asarray(arrays.t)[k], np.asarray(robot.effort_limits, dtype=float)
+    )
 
 
 def effort_report(motion: ServeMotion, robot: Robot) -> EffortReport | None:

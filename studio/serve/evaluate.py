@@ -30,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from studio import constants as C
-from studio.serve.efforts import EffortReport, effort_report  # noqa: F401  (re-exported: studio.serve.evaluate.effort_report)
+from studio.errors import InvalidInputError
 from studio.physics.ball import (
     DEFAULT_FLIGHT,
     BallState,
@@ -42,12 +42,12 @@ from studio.physics.ball import (
     spin_components,
 )
 from studio.physics.court import DEFAULT_COURT
-from studio.errors import InvalidInputError
-from studio.serve.reward import PLANNER_FAILURE_PENALTY, RewardTerms, RewardWeights, reward, task_weights
 from studio.robot.model import JointDynamics, Robot, load_robot
+from studio.serve.efforts import EffortReport, effort_report  # noqa: F401  (re-exported: studio.serve.evaluate.effort_report)
+from studio.serve.params import HandServe, LimitScale, TossSide
+from studio.serve.reward import PLANNER_FAILURE_PENALTY, RewardTerms, RewardWeights, reward, task_weights
 from studio.serve.rules import LegalityReport, RuleParams, ServeOutcome, check_serve, net_crossing
 from studio.serve.target import RacketTarget
-from studio.serve.params import HandServe, LimitScale, TossSide
 from studio.toss.defaults import load_default_toss_model
 from studio.toss.model import TossModel
 
@@ -125,15 +125,17 @@ class EvaluationContext:
         if side not in self._cup_checks:
             from studio.planning.serve_plan import serve_cup_check
 
-            self._cup_checks[side] = serve_cup_check(self.robot, self.preparation(side), self.toss_model(side).primitive)
+            self._cup_checks[side] = serve_cup_check(
+                self.robot, self.preparation(side), self.toss_model(side).primitive
+            )
         return self._cup_checks[side]
 
     def warm_up(self, side: TossSide) -> None:
         """Build the toss model of ``side``, the planner, the collision model and the
         preparation now (instead of in the first evaluation)."""
         self.toss_model(side)
-        self.planner
-        self.collision
+        _ = self.planner
+        _ = self.collision
         self.cup_hold(side)  # and the preparation it checks (~0.15 s)
 
     def toss_model(self, side: TossSide) -> TossModel:
@@ -467,7 +469,9 @@ def strike_target(serve: HandServe, toss: TossModel) -> RacketTarget:
     """
     p = serve.params
     if not (toss.t[0] <= p.tau <= toss.t[-1]):
-        raise InvalidInputError(f"tau = {p.tau:.3f} s is outside the toss model's time range [{toss.t[0]:.2f}, {toss.t[-1]:.2f}] s")
+        raise InvalidInputError(
+            f"tau = {p.tau:.3f} s is outside the toss model's time range [{toss.t[0]:.2f}, {toss.t[-1]:.2f}] s"
+        )
     ball = toss.mean_state(p.tau)
     n = np.asarray(p.normal, dtype=float)
     n = n / np.linalg.norm(n)
@@ -524,12 +528,24 @@ def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any
 
     def failed(status: Status, reason: str, **kw: Any) -> ServeMotion:
         return ServeMotion(
-            serve, target, kw.get("plan"), kw.get("t"), kw.get("u"), kw.get("q"), kw.get("collision"), (status, reason), None, timings,
-            qd=kw.get("qd"), preparation=context.preparation(serve.side) if "t" in kw else None,
-        )  # fmt: skip
+            serve,
+            target,
+            kw.get("plan"),
+            kw.get("t"),
+            kw.get("u"),
+            kw.get("q"),
+            kw.get("collision"),
+            (status, reason),
+            None,
+            timings,
+            qd=kw.get("qd"),
+            preparation=context.preparation(serve.side) if "t" in kw else None,
+        )
 
     if p.tau <= t_switch + 0.05:
-        return failed("planner_failed", f"contact time tau = {p.tau:.3f} s leaves no time to strike (lift at {toss.t_lift:.3f} s)")
+        return failed(
+            "planner_failed", f"contact time tau = {p.tau:.3f} s leaves no time to strike (lift at {toss.t_lift:.3f} s)"
+        )
     # The strike continues the toss commands u[:k] seamlessly from the predicted state at t_k.
     start, i_sw = start_from_toss(prim, t_switch)
     plan = context.planner_for(serve.limit_scale).plan(
@@ -557,12 +573,34 @@ def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any
         report = context.collision.check(t_full[i_sw:], q_full[i_sw:])
     clock = _lap(timings, "collision", clock)
     if report.collides:
-        return failed("collision", f"collision: {report.describe()}", plan=plan, t=t_full, u=u_full, q=q_full, qd=qd_full, collision=report)
+        return failed(
+            "collision",
+            f"collision: {report.describe()}",
+            plan=plan,
+            t=t_full,
+            u=u_full,
+            q=q_full,
+            qd=qd_full,
+            collision=report,
+        )
     window = (t_full >= toss.t_lift - 0.01) & (t_full <= p.tau + 0.25)
     positions, rotations = context.racket_poses(q_full[window])
     racket = SampledRacketMotion(t_full[window], positions, rotations)
     _lap(timings, "racket_fk", clock)
-    return ServeMotion(serve, target, plan, t_full, u_full, q_full, report, None, racket, timings, qd=qd_full, preparation=context.preparation(serve.side))
+    return ServeMotion(
+        serve,
+        target,
+        plan,
+        t_full,
+        u_full,
+        q_full,
+        report,
+        None,
+        racket,
+        timings,
+        qd=qd_full,
+        preparation=context.preparation(serve.side),
+    )
 
 
 def evaluate_motion(
@@ -587,7 +625,9 @@ def evaluate_motion(
     serve = motion.serve
     toss = context.toss_model(serve.side)
     if toss_sample is not None and not (0 <= toss_sample < toss.n_tosses):
-        raise InvalidInputError(f"toss sample {toss_sample} out of range: the {serve.side} toss has {toss.n_tosses} recordings")
+        raise InvalidInputError(
+            f"toss sample {toss_sample} out of range: the {serve.side} toss has {toss.n_tosses} recordings"
+        )
     if mujoco and toss_sample is not None:
         raise InvalidInputError(
             f"the MuJoCo rollout tosses the ball from the cup as the motion predicts: it cannot replay recorded toss {toss_sample + 1}; "
@@ -597,7 +637,7 @@ def evaluate_motion(
         return replace(_failure(motion, toss, timings), cup_hold=context.cup_hold(serve.side))
     assert motion.t is not None and motion.q is not None and motion.racket is not None
     p = serve.params
-    t_full, q_full = motion.t, motion.q
+    t_full = motion.t
     t_start = toss.t_lift + 0.005
     # The state at t_start whose flight passes through the mean path (or a recorded toss's
     # own recorded state) at tau, so that the ball touches the racket at tau (strike_target).
@@ -625,7 +665,12 @@ def evaluate_motion(
         # the robot as planned, then at rest until the ball's flight ends (t_end > t_full[-1])
         X = motion.joint_states(t_end, context.robot.dynamics)
         rollout_result = rollout(
-            context.mujoco_scene, t=t_full, X=X, ball="cup", t_end=t_end, flight=context.flight,
+            context.mujoco_scene,
+            t=t_full,
+            X=X,
+            ball="cup",
+            t_end=t_end,
+            flight=context.flight,
             racket_model=context.racket_model,
         )
         source = rollout_result
@@ -653,8 +698,15 @@ def evaluate_motion(
     if legality.legal and metrics.second_bounce is not None:
         sb = metrics.second_bounce
         net = metrics.net if metrics.net is not None else {}
-        terms = reward(p2=sb["p"], v2=sb["v"], w2=sb["w"], max_height=metrics.max_height or 0.0, weights=weights,
-                       v_net=net.get("v"), w_net=net.get("w"))
+        terms = reward(
+            p2=sb["p"],
+            v2=sb["v"],
+            w2=sb["w"],
+            max_height=metrics.max_height or 0.0,
+            weights=weights,
+            v_net=net.get("v"),
+            w_net=net.get("w"),
+        )
     else:
         terms = RewardTerms(s_leg=legality.penalty)
     _lap(timings, "checks", clock)
@@ -736,7 +788,9 @@ class RobustEvaluation:
         else the check most tosses failed), ``failed_checks`` (counts) and ``per_toss``."""
         first = self.evaluations[0].to_json()
         counts = self.failed_checks()
-        samples: list[int | None] = list(self.samples) if len(self.samples) == len(self.evaluations) else [None] * len(self.evaluations)
+        samples: list[int | None] = (
+            list(self.samples) if len(self.samples) == len(self.evaluations) else [None] * len(self.evaluations)
+        )
         first.update(
             {
                 "metrics_toss_sample": samples[0],
@@ -776,7 +830,9 @@ def evaluate_robust(
         raise InvalidInputError(f"min_legal_fraction must be in (0, 1], got {min_legal_fraction}")
     toss = context.toss_model(serve.side)
     if not (1 <= tosses <= toss.n_tosses):
-        raise InvalidInputError(f"tosses must be in [1, {toss.n_tosses}] (recordings of the {serve.side} toss), got {tosses}")
+        raise InvalidInputError(
+            f"tosses must be in [1, {toss.n_tosses}] (recordings of the {serve.side} toss), got {tosses}"
+        )
     rng = rng if rng is not None else np.random.default_rng(0)
     samples = rng.choice(toss.n_tosses, size=tosses, replace=False)
     motion = plan_motion(serve, context)
@@ -806,7 +862,11 @@ def report_markdown(ev: Evaluation) -> tuple[str, str, str]:
         checks = "\n".join(rows)
     if ev.cup_hold is not None:  # the robot's own check, outside the ITTF chain (no penalty)
         cup = f"{'pass' if ev.cup_hold.passed else '**FAIL**'} | ball stays in cup (preparation + toss) | none | {ev.cup_hold.detail}"
-        checks += f"\n| {cup} |" if ev.legality is not None else f"\n\n| | robot check | penalty | detail |\n|---|---|---|---|\n| {cup} |"
+        checks += (
+            f"\n| {cup} |"
+            if ev.legality is not None
+            else f"\n\n| | robot check | penalty | detail |\n|---|---|---|---|\n| {cup} |"
+        )
     m = ev.metrics
     lines = ["| metric | value |", "|---|---|"]
     for k, val in ev.reward.as_dict().items():
@@ -814,14 +874,18 @@ def report_markdown(ev: Evaluation) -> tuple[str, str, str]:
     if m is not None:
         if m.net is not None:
             lines.append(f"| net crossing speed | {m.net['speed']:.2f} m/s |")
-            lines.append(f"| net top/side/cork spin | {m.net['topspin']:+.0f} / {m.net['sidespin']:+.0f} / {m.net['cork']:+.0f} rad/s |")
+            lines.append(
+                f"| net top/side/cork spin | {m.net['topspin']:+.0f} / {m.net['sidespin']:+.0f} / {m.net['cork']:+.0f} rad/s |"
+            )
         if m.net_clearance is not None:
             lines.append(f"| net clearance | {100 * m.net_clearance:.1f} cm |")
         if m.second_bounce is not None:
             sb = m.second_bounce
             lines.append(f"| 2nd bounce at | ({sb['p'][0]:+.2f}, {sb['p'][1]:+.2f}) m |")
             lines.append(f"| 2nd bounce velocity | ({sb['v'][0]:+.2f}, {sb['v'][1]:+.2f}, {sb['v'][2]:+.2f}) m/s |")
-            lines.append(f"| 2nd bounce top/side/cork | {sb['topspin']:+.0f} / {sb['sidespin']:+.0f} / {sb['cork']:+.0f} rad/s |")
+            lines.append(
+                f"| 2nd bounce top/side/cork | {sb['topspin']:+.0f} / {sb['sidespin']:+.0f} / {sb['cork']:+.0f} rad/s |"
+            )
         if m.max_height is not None:
             lines.append(f"| max height after bounce 1 | {100 * m.max_height:.1f} cm |")
         for i, b in enumerate(m.bounces[:2]):
@@ -829,4 +893,3 @@ def report_markdown(ev: Evaluation) -> tuple[str, str, str]:
     for k, val in ev.timings_ms.items():
         lines.append(f"| time: {k} | {val:.1f} ms |")
     return status, checks, "\n".join(lines)
-

@@ -98,7 +98,9 @@ class GenomeBounds:
         for name in ("tau", "yaw", "roll", "t_return"):
             lo, hi = getattr(self, name)
             if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-                raise InvalidInputError(f"GenomeBounds.{name} must be a finite (low, high) with low < high, got {(lo, hi)}")
+                raise InvalidInputError(
+                    f"GenomeBounds.{name} must be a finite (low, high) with low < high, got {(lo, hi)}"
+                )
         if not all(np.isfinite(v) and v > 0 for v in self.velocity):
             raise InvalidInputError(f"GenomeBounds.velocity half-ranges must be positive, got {self.velocity}")
         if not (np.isfinite(self.offset) and self.offset >= 0):
@@ -161,7 +163,9 @@ class ServeParams:
             values = getattr(self, name)
             for value in values if isinstance(values, tuple) else (values,):
                 if not lo <= value <= hi:
-                    raise InvalidInputError(f"ServeParams.{name} = {value:.6g} is outside the allowed range [{lo:g}, {hi:g}] ({PARAM_UNITS[name]})")
+                    raise InvalidInputError(
+                        f"ServeParams.{name} = {value:.6g} is outside the allowed range [{lo:g}, {hi:g}] ({PARAM_UNITS[name]})"
+                    )
 
     @property
     def normal(self) -> npt.NDArray[np.float64]:
@@ -261,10 +265,14 @@ class LimitScale:
     def from_json(cls, data: Any, *, source: str = "<limit_scale>") -> LimitScale:
         """Inverse of :meth:`to_json`; missing factors are 1. Errors name ``source`` and the field."""
         if not isinstance(data, dict):
-            raise DataFileError(source, f"field 'limit_scale': must be an object with velocity/acceleration/jerk factors, got {data!r}")
+            raise DataFileError(
+                source, f"field 'limit_scale': must be an object with velocity/acceleration/jerk factors, got {data!r}"
+            )
         unknown = set(data) - {"velocity", "acceleration", "jerk"}
         if unknown:
-            raise DataFileError(source, f"field 'limit_scale': unknown keys {sorted(unknown)} (known: acceleration, jerk, velocity)")
+            raise DataFileError(
+                source, f"field 'limit_scale': unknown keys {sorted(unknown)} (known: acceleration, jerk, velocity)"
+            )
         try:
             return cls(**{k: data[k] for k in ("velocity", "acceleration", "jerk") if k in data})
         except InvalidInputError as err:
@@ -286,13 +294,17 @@ class LimitScale:
             key, sep, value = part.partition("=")
             key = key.strip()
             if not sep or key not in ("velocity", "acceleration", "jerk"):
-                raise InvalidInputError(f"limit scale {text!r}: expected a number or velocity=..,acceleration=..,jerk=.. (got part {part!r})")
+                raise InvalidInputError(
+                    f"limit scale {text!r}: expected a number or velocity=..,acceleration=..,jerk=.. (got part {part!r})"
+                )
             if key in values:
                 raise InvalidInputError(f"limit scale {text!r}: {key} given twice")
             try:
                 values[key] = float(value)
             except ValueError:
-                raise InvalidInputError(f"limit scale {text!r}: {key} must be a number, got {value.strip()!r}") from None
+                raise InvalidInputError(
+                    f"limit scale {text!r}: {key} must be a number, got {value.strip()!r}"
+                ) from None
         return cls(**values)
 
     def apply(self, limits: JointLimits) -> JointLimits:
@@ -431,12 +443,16 @@ def serve_from_json(data: Any, *, source: str = "<serve>") -> HandServe:
     limit_scale = LimitScale.from_json(data["limit_scale"], source=source) if "limit_scale" in data else LimitScale()
     unknown_fields = sorted(k for k in data if k not in _TOP_KEYS | _LABEL_KEYS and not k.startswith(EXTENSION_PREFIX))
     if unknown_fields:
-        raise fail(f"unknown fields {unknown_fields} (known: {sorted(_TOP_KEYS | _LABEL_KEYS)}; your own fields must start with {EXTENSION_PREFIX!r})")
+        raise fail(
+            f"unknown fields {unknown_fields} (known: {sorted(_TOP_KEYS | _LABEL_KEYS)}; your own fields must start with {EXTENSION_PREFIX!r})"
+        )
     for key in _LABEL_KEYS & set(data):
         if not isinstance(data[key], str) or len(data[key]) > MAX_NAME_LENGTH:
             raise fail(f"field '{key}': must be a string of at most {MAX_NAME_LENGTH} characters")
     extra = {k: v for k, v in data.items() if k.startswith(EXTENSION_PREFIX) or k in _LABEL_KEYS}
-    return HandServe(name=name.strip(), side=side, params=params, notes=notes, task=task, extra=extra, limit_scale=limit_scale)
+    return HandServe(
+        name=name.strip(), side=side, params=params, notes=notes, task=task, extra=extra, limit_scale=limit_scale
+    )
 
 
 def load_serve(path: str | Path) -> HandServe:

@@ -21,9 +21,9 @@ from typing import Literal
 import numpy as np
 import numpy.typing as npt
 
+from studio.errors import InvalidInputError
 from studio.physics.ball import spin_components
 from studio.physics.court import DEFAULT_COURT
-from studio.errors import InvalidInputError
 
 PLANNER_FAILURE_PENALTY = -10.0
 """Fixed penalty P_MPC when the motion planner finds no valid plan (paper)."""
@@ -36,7 +36,9 @@ def velocity_frame(v: npt.ArrayLike) -> npt.NDArray[np.float64]:
     horizontal part then falls back to +X (as :func:`studio.physics.ball.spin_components`).
     """
     # spin_components(v, e_i) = (e_y[i], e_z[i], e_x[i]): project the unit axes.
-    ey, ez, ex = (np.asarray(c, dtype=float) for c in spin_components(np.broadcast_to(np.asarray(v, float), (3, 3)), np.eye(3)))
+    ey, ez, ex = (
+        np.asarray(c, dtype=float) for c in spin_components(np.broadcast_to(np.asarray(v, float), (3, 3)), np.eye(3))
+    )
     return np.stack([ex, ey, ez])
 
 
@@ -93,7 +95,20 @@ class RewardWeights:
     """Height [m] at and below which r_height is at its full gain (~ net height)."""
 
     def __post_init__(self) -> None:
-        for name in ("g_pos", "pos_sigma", "g_vel_xy", "g_vel_z", "v_xy_ref", "v_z_ref", "g_top", "g_back", "g_side", "spin_max", "g_height", "h_ref"):
+        for name in (
+            "g_pos",
+            "pos_sigma",
+            "g_vel_xy",
+            "g_vel_z",
+            "v_xy_ref",
+            "v_z_ref",
+            "g_top",
+            "g_back",
+            "g_side",
+            "spin_max",
+            "g_height",
+            "h_ref",
+        ):
             if not math.isfinite(getattr(self, name)):
                 raise InvalidInputError(f"RewardWeights.{name} must be finite")
         for name in ("pos_sigma", "v_xy_ref", "v_z_ref", "spin_max", "h_ref"):
@@ -161,14 +176,20 @@ def reward(
         InvalidInputError: non-finite states, or no net state for ``spin_at="net"``.
     """
     p2, v2, w2 = (np.asarray(a, dtype=float) for a in (p2, v2, w2))
-    if not (np.all(np.isfinite(p2)) and np.all(np.isfinite(v2)) and np.all(np.isfinite(w2)) and math.isfinite(max_height)):
+    if not (
+        np.all(np.isfinite(p2)) and np.all(np.isfinite(v2)) and np.all(np.isfinite(w2)) and math.isfinite(max_height)
+    ):
         raise InvalidInputError("reward: ball state at the second bounce must be finite")
     v_spin, w_spin = v2, w2
     if weights.spin_at == "net":
         if v_net is None or w_net is None:
             raise InvalidInputError("reward: spin_at='net' needs the ball state at the net crossing (v_net, w_net)")
         v_spin, w_spin = np.asarray(v_net, dtype=float), np.asarray(w_net, dtype=float)
-        if v_spin.shape != (3,) or w_spin.shape != (3,) or not (np.all(np.isfinite(v_spin)) and np.all(np.isfinite(w_spin))):
+        if (
+            v_spin.shape != (3,)
+            or w_spin.shape != (3,)
+            or not (np.all(np.isfinite(v_spin)) and np.all(np.isfinite(w_spin)))
+        ):
             raise InvalidInputError("reward: ball state at the net crossing must be two finite 3-vectors")
     wt = weights
     d = float(np.hypot(p2[0] - wt.target[0], p2[1] - wt.target[1]))
@@ -188,7 +209,9 @@ _LOW = 0.5
 """Weight of the "low" height term the paper adds to every training run."""
 
 TASKS: dict[str, RewardWeights] = {
-    "aiming": RewardWeights(g_pos=2.0, target=(DEFAULT_COURT.half_length - 0.15, DEFAULT_COURT.half_width - 0.15), g_height=_LOW),
+    "aiming": RewardWeights(
+        g_pos=2.0, target=(DEFAULT_COURT.half_length - 0.15, DEFAULT_COURT.half_width - 0.15), g_height=_LOW
+    ),
     "topspin_velocity": RewardWeights(g_top=1.0, g_vel_xy=1.0, g_height=_LOW),
     "backspin": RewardWeights(g_back=1.0, g_height=_LOW),
     "sidespin": RewardWeights(g_side=1.0, g_height=_LOW),

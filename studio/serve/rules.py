@@ -129,7 +129,9 @@ class ServeOutcome:
     """Time the robot is back at rest [s], if known (for the optional rest check)."""
 
 
-def net_crossing(t: npt.NDArray[np.float64], p: npt.NDArray[np.float64]) -> tuple[float, npt.NDArray[np.float64]] | None:
+def net_crossing(
+    t: npt.NDArray[np.float64], p: npt.NDArray[np.float64]
+) -> tuple[float, npt.NDArray[np.float64]] | None:
     """First crossing of the net plane x = 0 from the server's side: (time [s], position (3,)).
 
     Linear interpolation between samples; None if the ball never crosses.
@@ -163,7 +165,9 @@ LABELS: dict[str, tuple[str, float]] = {
 """Check name -> (label, penalty), in chain order."""
 
 
-def check_serve(outcome: ServeOutcome, *, params: RuleParams = RuleParams(), court: Court = DEFAULT_COURT) -> LegalityReport:
+def check_serve(
+    outcome: ServeOutcome, *, params: RuleParams = RuleParams(), court: Court = DEFAULT_COURT
+) -> LegalityReport:
     """Evaluate the whole legality chain on one simulated serve."""
     t, p = np.asarray(outcome.t, dtype=float), np.asarray(outcome.p, dtype=float)
     contacts = tuple(sorted(outcome.contacts, key=lambda c: c.t))
@@ -236,7 +240,9 @@ def check_serve(outcome: ServeOutcome, *, params: RuleParams = RuleParams(), cou
         results["robot_rest"] = (rest_ok, f"rest at {outcome.robot_rest_t}")
 
     checks = tuple(
-        Check(name, LABELS[name][0], LABELS[name][1], bool(results[name][0]), results[name][1]) for name in LABELS if name in results
+        Check(name, LABELS[name][0], LABELS[name][1], bool(results[name][0]), results[name][1])
+        for name in LABELS
+        if name in results
     )
     return LegalityReport(checks)
 

@@ -79,7 +79,14 @@ class ContactSearch:
     """
 
     def __init__(
-        self, scene: Scene, data: mujoco.MjData, track: RobotTrack, grid: FloatArray, t0: float, dt: float, options: RolloutOptions
+        self,
+        scene: Scene,
+        data: mujoco.MjData,
+        track: RobotTrack,
+        grid: FloatArray,
+        t0: float,
+        dt: float,
+        options: RolloutOptions,
     ) -> None:
         self.scene = scene
         self.m = scene.model
@@ -104,7 +111,9 @@ class ContactSearch:
         self.d.geom_xpos[self.bg] = p
         rearm = self.options.rearm_distance
         self.disarmed = {
-            int(g) for g in self.scene.contact_geoms if mujoco.mj_geomDistance(self.m, self.d, self.bg, int(g), DISTANCE_CUTOFF, None) <= rearm
+            int(g)
+            for g in self.scene.contact_geoms
+            if mujoco.mj_geomDistance(self.m, self.d, self.bg, int(g), DISTANCE_CUTOFF, None) <= rearm
         }
 
     def disarm(self, g: int) -> None:
@@ -162,7 +171,10 @@ class ContactSearch:
         ka = min(max(int(math.floor((ta - self.t0) / dt)), 0), n_total - 1)
         kb = min(int(math.ceil((tb - self.t0) / dt)), n_total - 1)
         track.ensure(kb)
-        if not (np.all(np.min(track.lo[ka : kb + 1], axis=0) <= phi) and np.all(np.max(track.hi[ka : kb + 1], axis=0) >= plo)):
+        if not (
+            np.all(np.min(track.lo[ka : kb + 1], axis=0) <= phi)
+            and np.all(np.max(track.hi[ka : kb + 1], axis=0) >= plo)
+        ):
             return None
         ks = np.arange(ka, kb + 1)
         ts = self.grid[ks]
@@ -245,7 +257,9 @@ class ContactSearch:
                 safe = min(safe, (dist - level) / closing[j])
         return crossing, safe
 
-    def _refine(self, step: Step, crossing: list[tuple[int, float]], prev: float, tau: float) -> tuple[float, int] | None:
+    def _refine(
+        self, step: Step, crossing: list[tuple[int, float]], prev: float, tau: float
+    ) -> tuple[float, int] | None:
         """The earliest touch among the ``crossing`` geoms in ``[prev, tau]`` [s], by
         Brent's method on the distance (robot posed and ball placed at each trial time)."""
         ta, h, ya, fa, yb, fb = step

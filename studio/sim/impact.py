@@ -133,7 +133,9 @@ class Impacts:
             normal = nv / max(float(np.linalg.norm(nv)), 1e-12)
         return point, normal
 
-    def _table_rebound(self, kind: str, normal: FloatArray, v_b: FloatArray, w_b: FloatArray) -> tuple[str, FloatArray, FloatArray]:
+    def _table_rebound(
+        self, kind: str, normal: FloatArray, v_b: FloatArray, w_b: FloatArray
+    ) -> tuple[str, FloatArray, FloatArray]:
         """Part touched, velocity and spin after a floor or table contact (table edges:
         the bounce model in the frame of their own normal)."""
         table = self.table

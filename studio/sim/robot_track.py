@@ -19,7 +19,9 @@ CHUNK: Final[int] = 128
 """Robot samples posed per batch (the robot is posed lazily, as far as the ball flies)."""
 
 
-def hermite_rows(theta: FloatArray, h: FloatArray, ya: FloatArray, fa: FloatArray, yb: FloatArray, fb: FloatArray) -> FloatArray:
+def hermite_rows(
+    theta: FloatArray, h: FloatArray, ya: FloatArray, fa: FloatArray, yb: FloatArray, fb: FloatArray
+) -> FloatArray:
     """Vectorized cubic Hermite: theta, h (K,), the rest (K, n) -> (K, n)."""
     th = theta[:, None]
     t2 = th * th
@@ -124,7 +126,9 @@ class RobotTrack:
         t2 = th * th
         t3 = t2 * th
         q = (2 * t3 - 3 * t2 + 1) * qa + (t3 - 2 * t2 + th) * h * va + (-2 * t3 + 3 * t2) * qb + (t3 - t2) * h * vb
-        qd = ((6 * t2 - 6 * th) * qa + (-6 * t2 + 6 * th) * qb) / h + (3 * t2 - 4 * th + 1) * va + (3 * t2 - 2 * th) * vb
+        qd = (
+            ((6 * t2 - 6 * th) * qa + (-6 * t2 + 6 * th) * qb) / h + (3 * t2 - 4 * th + 1) * va + (3 * t2 - 2 * th) * vb
+        )
         return q, qd
 
     def q_batch(self, taus: FloatArray) -> FloatArray:

@@ -314,7 +314,9 @@ def _predicted_states(
     U = _as_array(u, "u", (N, nq))
     dyn = dynamics if dynamics is not None else _default_dynamics()
     if tuple(dyn.names) != scene.joint_names:
-        raise RobotModelError(f"rollout: joint model joints {tuple(dyn.names)} differ from the scene's {scene.joint_names}")
+        raise RobotModelError(
+            f"rollout: joint model joints {tuple(dyn.names)} differ from the scene's {scene.joint_names}"
+        )
     X0a = np.stack([U[0], np.zeros(nq)], axis=1) if X0 is None else _as_array(X0, "X0", (nq, 2))
     if n_total > N:
         U = np.concatenate([U, np.repeat(U[-1:], n_total - N, axis=0)])
@@ -342,7 +344,9 @@ def _start(
     if not isinstance(ball, str):
         return None, -1, float(grid[0]), [*ball.p.tolist(), *ball.v.tolist(), *ball.w.tolist()]
     track.ensure(grid.size - 1)
-    release = find_release(grid, track.cup, track.R[:, :, 2], rotation=track.R, gravity=flight.gravity, drag_k=flight.drag_constant)
+    release = find_release(
+        grid, track.cup, track.R[:, :, 2], rotation=track.R, gravity=flight.gravity, drag_k=flight.drag_constant
+    )
     if release is None or release.time >= t_stop:
         return None
     t_start = float(release.time)
@@ -473,5 +477,13 @@ def _assemble(
     q = Q[:M].copy()
     _frozen(tq, P, V, W, q)
     return RolloutResult(
-        t=tq, p=P, v=V, w=W, q=q, contacts=tuple(contacts), release=release, t_final=float(t_final), end_reason=end_reason
+        t=tq,
+        p=P,
+        v=V,
+        w=W,
+        q=q,
+        contacts=tuple(contacts),
+        release=release,
+        t_final=float(t_final),
+        end_reason=end_reason,
     )

@@ -101,7 +101,9 @@ def _box_kind(box: Box) -> str:
     return {"table": "table", "net": "net", "post": "post"}.get(box.kind, "")
 
 
-def _add_box(spec: mujoco.MjSpec, box: Box, *, contype: int, conaffinity: int, rgba: tuple[float, ...], group: int) -> None:
+def _add_box(
+    spec: mujoco.MjSpec, box: Box, *, contype: int, conaffinity: int, rgba: tuple[float, ...], group: int
+) -> None:
     g = spec.worldbody.add_geom()
     g.name = box.name
     g.type = mujoco.mjtGeom.mjGEOM_BOX

@@ -28,5 +28,7 @@ def confined(folder: str | Path, path: str | Path) -> Path:
     for part in rel.parts:
         current = current / part
         if current.is_symlink():
-            raise DataFileError(current, f"is a symbolic link: inside {base} only the program's own files are read and written")
+            raise DataFileError(
+                current, f"is a symbolic link: inside {base} only the program's own files are read and written"
+            )
     return target

@@ -72,10 +72,19 @@ def decode_text(data: bytes, path: str | Path, *, line: int | None = None) -> st
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as err:
         where = f"line {line}: " if line is not None else ""
-        raise DataFileError(path, f"{where}not UTF-8 text (byte 0x{data[err.start]:02x} at offset {err.start}); save the file as UTF-8") from None
+        raise DataFileError(
+            path, f"{where}not UTF-8 text (byte 0x{data[err.start]:02x} at offset {err.start}); save the file as UTF-8"
+        ) from None
 
 
-def parse_json(text: str | bytes, path: str | Path, *, line: int | None = None, infinity_at: tuple[str, ...] = (), max_depth: int = MAX_DEPTH) -> Any:
+def parse_json(
+    text: str | bytes,
+    path: str | Path,
+    *,
+    line: int | None = None,
+    infinity_at: tuple[str, ...] = (),
+    max_depth: int = MAX_DEPTH,
+) -> Any:
     """Decode one strict JSON document (module doc) from ``text``; errors name ``path``,
     the field and, for a log, its ``line``. ``infinity_at``: field paths ending so that may
     hold ``Infinity`` (legacy files)."""
@@ -97,7 +106,9 @@ def parse_json(text: str | bytes, path: str | Path, *, line: int | None = None, 
     return doc
 
 
-def check_values(doc: Any, path: str | Path, *, root: str = "", prefix: str = "", infinity_at: tuple[str, ...] = ()) -> None:
+def check_values(
+    doc: Any, path: str | Path, *, root: str = "", prefix: str = "", infinity_at: tuple[str, ...] = ()
+) -> None:
     """DataFileError naming the field (``root`` + its path) unless every value of ``doc``
     is strict JSON: finite numbers (``Infinity`` only at fields ending in one of
     ``infinity_at``), integers within +-:data:`MAX_INT`, valid Unicode strings and keys."""
@@ -115,8 +126,14 @@ def check_values(doc: Any, path: str | Path, *, root: str = "", prefix: str = ""
         elif isinstance(value, bool) or value is None:
             continue
         elif isinstance(value, int) and abs(value) > MAX_INT:
-            raise DataFileError(path, f"{prefix}field '{field}': integer out of range (|n| > 2**53 - 1, {len(str(abs(value)))} digits)")
-        elif isinstance(value, float) and not math.isfinite(value) and not (value > 0 and field.endswith(infinity_at) and infinity_at):
+            raise DataFileError(
+                path, f"{prefix}field '{field}': integer out of range (|n| > 2**53 - 1, {len(str(abs(value)))} digits)"
+            )
+        elif (
+            isinstance(value, float)
+            and not math.isfinite(value)
+            and not (value > 0 and field.endswith(infinity_at) and infinity_at)
+        ):
             raise DataFileError(path, f"{prefix}field '{field}': must be a finite number, got {value!r}")
 
 
@@ -139,7 +156,9 @@ def _text(text: str, where: str, path: str | Path, prefix: str = "") -> None:
     """DataFileError unless ``text`` is valid Unicode (no lone surrogate)."""
     pos = lone_surrogate(text)
     if pos is not None:
-        raise DataFileError(path, f"{prefix}field '{where}' is not valid Unicode (lone surrogate {text[pos]!r} at position {pos})")
+        raise DataFileError(
+            path, f"{prefix}field '{where}' is not valid Unicode (lone surrogate {text[pos]!r} at position {pos})"
+        )
 
 
 def _int(text: str) -> int:

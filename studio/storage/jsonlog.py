@@ -128,7 +128,12 @@ def _set_aside(path: Path, torn: bytes) -> None:
         fh.write(torn.replace(b"\n", b" ") + b"\n")
         fh.flush()
         os.fsync(fh.fileno())
-    _LOG.warning("%s: torn last line (%d bytes, left by an interrupted write) moved to %s; its work is redone", path, len(torn), aside)
+    _LOG.warning(
+        "%s: torn last line (%d bytes, left by an interrupted write) moved to %s; its work is redone",
+        path,
+        len(torn),
+        aside,
+    )
 
 
 def _record(path: Path, number: int, line: bytes, parse: Callable[[Any], T]) -> T:

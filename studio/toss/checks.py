@@ -37,7 +37,13 @@ CLEAR_MARGIN: Final[float] = 0.01
 
 
 def limit_violations(
-    u: FloatArray, ud: FloatArray, udd: FloatArray, uddd: FloatArray, limits: JointLimits, *, q: FloatArray | None = None
+    u: FloatArray,
+    ud: FloatArray,
+    udd: FloatArray,
+    uddd: FloatArray,
+    limits: JointLimits,
+    *,
+    q: FloatArray | None = None,
 ) -> list[str]:
     """Joint-limit violations of a command trajectory, as readable messages.
 
@@ -91,8 +97,12 @@ def check_clearance(robot: Robot, t: FloatArray, cup_p: FloatArray, release: Rel
     R = rs.ball_radius
     sag = R - math.sqrt(R * R - rs.cup_rim_radius**2)
     FT, FP, FV = free_flights(
-        release.position[None, :], release.velocity[None, :], np.array([release.time]),
-        max(float(t[-1]) - release.time, 1e-3), ball.DEFAULT_FLIGHT, h=5e-3,
+        release.position[None, :],
+        release.velocity[None, :],
+        np.array([release.time]),
+        max(float(t[-1]) - release.time, 1e-3),
+        ball.DEFAULT_FLIGHT,
+        h=5e-3,
     )  # RK4 at 5 ms: ~1e-8 m on this smooth, spinless flight
     ft, fp, fv = FT[0], FP[0], FV[0]
     sel = t > release.time

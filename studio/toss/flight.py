@@ -126,7 +126,9 @@ def single_flight(
     return T[0], P[0], V[0]
 
 
-def spinless_flight(p: FloatArray, v: FloatArray, t0: float, t1: float, flight: object, *, step: float) -> tuple[FloatArray, FloatArray]:
+def spinless_flight(
+    p: FloatArray, v: FloatArray, t0: float, t1: float, flight: object, *, step: float
+) -> tuple[FloatArray, FloatArray]:
     """Positions [m] and velocities [m/s] (C, 3) at ``t1`` [s] of spinless flights from
     ``p``, ``v`` (C, 3) at ``t0`` [s] in still air: classic RK4 on the flight model's
     scalar derivative (``flight.scalar_derivative()``, a :class:`studio.physics.ball.FlightModel`;

@@ -51,9 +51,13 @@ def local_fit_state(
     """
     lo, hi = span
     if not (lo - 1e-9 <= time <= hi + 1e-9):
-        raise InvalidInputError(f"time {time:.4f} s is not covered by the recording's free flight [{lo:.4f}, {hi:.4f}] s")
+        raise InvalidInputError(
+            f"time {time:.4f} s is not covered by the recording's free flight [{lo:.4f}, {hi:.4f}] s"
+        )
     if hi - lo < 2.0 * half_window:
-        raise InvalidInputError(f"the recording's free flight [{lo:.4f}, {hi:.4f}] s is shorter than the {2 * half_window:.3f} s fit window")
+        raise InvalidInputError(
+            f"the recording's free flight [{lo:.4f}, {hi:.4f}] s is shorter than the {2 * half_window:.3f} s fit window"
+        )
     w_lo = min(max(time - half_window, lo), hi - 2.0 * half_window)
     sel = (t >= w_lo - 1e-9) & (t <= w_lo + 2.0 * half_window + 1e-9)
     if np.count_nonzero(sel) < max(LOCAL_FIT_MIN_SAMPLES, order + 2):

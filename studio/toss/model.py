@@ -91,7 +91,9 @@ class TossModel:
     (diagnostic of the tracking calibration; not removed from the data)."""
     lift_fit_rms: float
     """RMS residual of the ``t_lift`` fit [m] (about the tracking noise when it fits)."""
-    _start_cache: dict[tuple[object, ...], FloatArray] = field(default_factory=dict, init=False, repr=False, compare=False)
+    _start_cache: dict[tuple[object, ...], FloatArray] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
     """Cache of :meth:`_recorded_start_states` per (t_start, t_target, flight) (internal)."""
 
     def __post_init__(self) -> None:
@@ -189,7 +191,9 @@ class TossModel:
         P = np.array([s.p for s in self.ball_states_at(time)])
         return P.std(axis=0, ddof=1)
 
-    def recorded_start_state(self, k: int, t_start: float, t_target: float, *, flight: object | None = None) -> BallState:
+    def recorded_start_state(
+        self, k: int, t_start: float, t_target: float, *, flight: object | None = None
+    ) -> BallState:
         """Ball state of recorded toss ``k`` at ``t_start`` [s] from which a spinless
         flight in still air under ``flight`` (default :data:`studio.physics.ball.DEFAULT_FLIGHT`)
         passes through the toss's recorded state at ``t_target`` [s] (the strike time
@@ -261,7 +265,9 @@ class TossModel:
             self._start_cache[key] = X
         return X
 
-    def sample(self, time: float, rng: np.random.Generator, *, method: Literal["gaussian", "recorded"] = "gaussian") -> BallState:
+    def sample(
+        self, time: float, rng: np.random.Generator, *, method: Literal["gaussian", "recorded"] = "gaussian"
+    ) -> BallState:
         """A random ball state at ``time`` [s], zero spin.
 
         ``"gaussian"``: mean state plus a deviation drawn from the recordings' joint
@@ -282,7 +288,6 @@ class TossModel:
         K = X.shape[0]
         draw = mean + (rng.standard_normal(K) @ dev) / math.sqrt(max(K - 1, 1))
         return BallState(p=draw[:3], v=draw[3:], w=np.zeros(3))
-
 
     @classmethod
     def from_recordings(

@@ -67,7 +67,9 @@ class TossNoise:
     @classmethod
     def none(cls) -> TossNoise:
         """No randomness except the camera sampling (noise-free reference)."""
-        return cls(vibration=0.0, release_jitter=0.0, wind=0.0, wind_vertical=0.0, measurement=0.0, clock_offset=(0.0, 0.0))
+        return cls(
+            vibration=0.0, release_jitter=0.0, wind=0.0, wind_vertical=0.0, measurement=0.0, clock_offset=(0.0, 0.0)
+        )
 
 
 DEFAULT_NOISE: Final[TossNoise] = TossNoise()

@@ -41,12 +41,16 @@ class TossRecording:
     """Ball centre positions (M, 3) [m], world frame."""
 
     def __post_init__(self) -> None:
-        if not self.toss_id or any(ch in self.toss_id for ch in ",\n\r\"") or self.toss_id != self.toss_id.strip():
-            raise InvalidInputError(f"TossRecording: toss_id {self.toss_id!r} must be non-empty, without commas, quotes, newlines or surrounding spaces")
+        if not self.toss_id or any(ch in self.toss_id for ch in ',\n\r"') or self.toss_id != self.toss_id.strip():
+            raise InvalidInputError(
+                f"TossRecording: toss_id {self.toss_id!r} must be non-empty, without commas, quotes, newlines or surrounding spaces"
+            )
         t = np.array(self.t, dtype=float)
         p = np.array(self.p, dtype=float)
         if t.ndim != 1 or p.shape != (t.size, 3):
-            raise InvalidInputError(f"TossRecording {self.toss_id!r}: t must be (M,) and p (M, 3), got {t.shape}, {p.shape}")
+            raise InvalidInputError(
+                f"TossRecording {self.toss_id!r}: t must be (M,) and p (M, 3), got {t.shape}, {p.shape}"
+            )
         if t.size < MIN_SAMPLES_PER_TOSS:
             raise InvalidInputError(f"TossRecording {self.toss_id!r}: {t.size} samples < {MIN_SAMPLES_PER_TOSS}")
         if not (np.all(np.isfinite(t)) and np.all(np.isfinite(p))):
@@ -103,7 +107,9 @@ class TossRecordings:
         return len(self.recordings)
 
 
-def save_recordings_csv(path: str | Path, recordings: TossRecordings, *, decimals: int = 6, comment: str | None = None) -> None:
+def save_recordings_csv(
+    path: str | Path, recordings: TossRecordings, *, decimals: int = 6, comment: str | None = None
+) -> None:
     """Write recordings as CSV (format of :func:`load_recordings_csv`).
 
     Args:
@@ -122,7 +128,9 @@ def save_recordings_csv(path: str | Path, recordings: TossRecordings, *, decimal
     fmt = f"{{:.{decimals}f}}"
     for rec in recordings.recordings:
         for ti, pi in zip(rec.t, rec.p):
-            lines.append(",".join([rec.toss_id, fmt.format(ti), fmt.format(pi[0]), fmt.format(pi[1]), fmt.format(pi[2])]))
+            lines.append(
+                ",".join([rec.toss_id, fmt.format(ti), fmt.format(pi[0]), fmt.format(pi[1]), fmt.format(pi[2])])
+            )
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
     os.replace(tmp, path)
@@ -174,7 +182,8 @@ def load_recordings_csv(path: str | Path) -> TossRecordings:
     for tid, (ts, ps, last_line) in data.items():
         if len(ts) < MIN_SAMPLES_PER_TOSS:
             raise DataFileError(
-                path, f"toss {tid!r} (last row line {last_line}): {len(ts)} samples, at least {MIN_SAMPLES_PER_TOSS} needed"
+                path,
+                f"toss {tid!r} (last row line {last_line}): {len(ts)} samples, at least {MIN_SAMPLES_PER_TOSS} needed",
             )
         recs.append(TossRecording(toss_id=tid, t=np.array(ts), p=np.array(ps)))
     return TossRecordings(recordings=tuple(recs))
@@ -195,7 +204,11 @@ def _header_columns(path: Path, lineno: int, line: str, header: list[str]) -> di
 
 
 def _add_row(
-    path: Path, lineno: int, cells: list[str], col: dict[str, int], data: dict[str, tuple[list[float], list[list[float]], int]]
+    path: Path,
+    lineno: int,
+    cells: list[str],
+    col: dict[str, int],
+    data: dict[str, tuple[list[float], list[list[float]], int]],
 ) -> None:
     """Append the sample of one data row to ``data`` ({toss_id: (times, positions, last
     line)}); DataFileError for a bad id, a bad number or a time not after the toss's last."""

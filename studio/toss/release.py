@@ -206,7 +206,9 @@ def find_release(
     return _release_between(k - 1, k, tt, margin, p, v, a, n, omega)
 
 
-def _checked_samples(t: npt.ArrayLike, cup_p: npt.ArrayLike, cup_normal: npt.ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
+def _checked_samples(
+    t: npt.ArrayLike, cup_p: npt.ArrayLike, cup_normal: npt.ArrayLike
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Times (N,), cup positions (N, 3) and unit normals (N, 3) of :func:`find_release`,
     validated (InvalidInputError otherwise)."""
     tt = np.asarray(t, dtype=float)
@@ -253,7 +255,15 @@ def _angular_velocities(tt: FloatArray, n: FloatArray, rotation: npt.ArrayLike |
 
 
 def _release_between(
-    i: int, k: int, tt: FloatArray, margin: FloatArray, p: FloatArray, v: FloatArray, a: FloatArray, n: FloatArray, omega: FloatArray
+    i: int,
+    k: int,
+    tt: FloatArray,
+    margin: FloatArray,
+    p: FloatArray,
+    v: FloatArray,
+    a: FloatArray,
+    n: FloatArray,
+    omega: FloatArray,
 ) -> Release:
     """The release between samples ``i`` (contact) and ``k = i + 1`` (none): crossing of
     the margin by linear interpolation, cubic Hermite position, linear

@@ -66,5 +66,7 @@ def toss_report(side: TossSide = "right", csv_path: str | Path | None = None, *,
             )
             if tq >= model.free_flight_start:
                 rs = model.recorded_spread_at(tq) * 1e3
-                lines.append(f"    recorded states there (each toss's own samples +/- {LOCAL_FIT_HALF_WINDOW * 1e3:.0f} ms): |spread| {float(np.linalg.norm(rs)):.1f} mm")
+                lines.append(
+                    f"    recorded states there (each toss's own samples +/- {LOCAL_FIT_HALF_WINDOW * 1e3:.0f} ms): |spread| {float(np.linalg.norm(rs)):.1f} mm"
+                )
     return "\n".join(lines)

@@ -146,9 +146,20 @@ def make_toss(
     check_clearance(robot, t, cup_p, release, t_clear)
     check_lift(t, cup_p, normals, release)
     return TossPrimitive(
-        name=name or f"toss_{side}", side=side, t=t, u=u, ud=ud, udd=udd, uddd=uddd, X=X,
-        cup_p=cup_p, cup_normal=normals, release=release, profile=profile, dt=dt,
-    )  # fmt: skip
+        name=name or f"toss_{side}",
+        side=side,
+        t=t,
+        u=u,
+        ud=ud,
+        udd=udd,
+        uddd=uddd,
+        X=X,
+        cup_p=cup_p,
+        cup_normal=normals,
+        release=release,
+        profile=profile,
+        dt=dt,
+    )
 
 
 def _flat_start_height(robot: Robot, q_start: FloatArray) -> float:
@@ -177,7 +188,14 @@ def _designed_release(profile: LiftProfile, clear: ClearMove, duration: float, g
 
 
 def _joint_motion(
-    robot: Robot, side: TossSide, path: LiftPath, profile: LiftProfile, clear: ClearMove, z0: float, t_clear: float, te: FloatArray
+    robot: Robot,
+    side: TossSide,
+    path: LiftPath,
+    profile: LiftProfile,
+    clear: ClearMove,
+    z0: float,
+    t_clear: float,
+    te: FloatArray,
 ) -> list[FloatArray]:
     """Joint positions and their time derivatives of order 1-5, each (M, 8), at the times
     ``te`` (M,) [s]: the arm on the lift line, ``q_arm(t) = q_start + S(z(t)) d``; the

@@ -98,7 +98,9 @@ def simulate_tosses(
     draws = _TossDraws.draw(rng, n, noise, rel.time, t)
     p_rel = hermite_interpolate(t, cup, cup_v, draws.t_rel)
     v_rel = np.stack([np.interp(draws.t_rel, t, cup_v[:, j]) for j in range(3)], axis=1) + draws.v_dev
-    FT, FP, FV = free_flights(p_rel, v_rel, draws.t_rel, noise.t_max - float(np.min(draws.t_rel)), fl, wind=draws.wind, h=1e-3)
+    FT, FP, FV = free_flights(
+        p_rel, v_rel, draws.t_rel, noise.t_max - float(np.min(draws.t_rel)), fl, wind=draws.wind, h=1e-3
+    )
     prefix = id_prefix or primitive.name
     recs: list[TossRecording] = []
     truths: list[TossTruth] = []
@@ -118,7 +120,9 @@ def simulate_tosses(
     return TossRecordings(recordings=tuple(recs), truth=tuple(truths))
 
 
-def _executed_cup_motion(robot: Robot, primitive: TossPrimitive, flight: object) -> tuple[FloatArray, FloatArray, Release]:
+def _executed_cup_motion(
+    robot: Robot, primitive: TossPrimitive, flight: object
+) -> tuple[FloatArray, FloatArray, Release]:
     """Cup centre (N, 3) [m] and velocity (N, 3) [m/s] of the primitive's commands run
     through ``robot.dynamics``, and the release on that motion under ``flight``."""
     t = primitive.t
@@ -165,7 +169,11 @@ class _TossDraws:
         for k in range(n):
             t_rel[k] = np.clip(release_time + noise.release_jitter * rng.standard_normal(), t[1], t[-2])
             v_dev[k] = noise.vibration * rng.standard_normal(3)
-            wind[k] = [noise.wind * rng.standard_normal(), noise.wind * rng.standard_normal(), noise.wind_vertical * rng.standard_normal()]
+            wind[k] = [
+                noise.wind * rng.standard_normal(),
+                noise.wind * rng.standard_normal(),
+                noise.wind_vertical * rng.standard_normal(),
+            ]
             t_start[k] = max(0.0, t_rel[k] - rng.uniform(*noise.visible_before_release))
             phase[k] = rng.uniform(0.0, frame)
             offset[k] = rng.uniform(*noise.clock_offset)
