@@ -1526,7 +1526,11 @@ class _EventSearch:
                 or hi[2] < ob.c[2] - ob.h[2]
             ):
                 continue
-            th = _first_crossing(lambda th, ob=ob: _box_distance(pos(th), ob) - r, n_sub, 2e-3)
+
+            def box_gap(th: float, _ob: _Obstacle = ob) -> float:
+                return _box_distance(pos(th), _ob) - r
+
+            th = _first_crossing(box_gap, n_sub, 2e-3)
             if th is not None and th < best_theta:
                 best_theta, best = th, ("box", ob)
         # --- racket --------------------------------------------------------------------

@@ -395,7 +395,7 @@ def _fit(sets: list[ContactSet], free: Sequence[str], fixed: dict[str, float], n
     x0 = np.clip(np.array([getattr(base, n) for n in free]), lo, hi)
 
     def make(x: FloatArray) -> RacketModel:
-        return replace(base, **{n: float(val) for n, val in zip(free, x, strict=True)})
+        return replace(base, **{n: float(val) for n, val in zip(free, x, strict=True)}, name=name)
 
     sol = least_squares(lambda x: residuals(make(x), sets), x0, bounds=(lo, hi), x_scale="jac")
     return make(sol.x)
@@ -530,7 +530,7 @@ def drop_test_rebound(
     table = TableBounceModel() if table is None else table
     flight = FlightModel() if flight is None else flight
     r = flight.radius
-    state = BallState([0.6, 0.3, drop_height + r], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    state = BallState(np.array([0.6, 0.3, drop_height + r]), np.zeros(3), np.zeros(3))
     traj = simulate(state, 1.2, flight=flight, table=table, max_table_bounces=2, dt_out=5e-4)
     bounces = traj.table_bounces
     if not bounces:

@@ -97,7 +97,7 @@ def sample(problem: StrikeProblem, z: FloatArray) -> tuple[FloatArray, FloatArra
     """
     dt = problem.setup.options.dt
     N = int(math.floor(problem.target.tau_f / dt + 1e-9)) + 1
-    t = np.arange(N) * dt
+    t = np.arange(N, dtype=np.float64) * dt
     Z = problem.chain_at(z, t, on_grid=True)
     C = problem.chain_at(z, t + 0.5 * dt, commands_only=True)
     return t, C, Z

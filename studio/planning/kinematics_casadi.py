@@ -29,7 +29,7 @@ FloatArray = npt.NDArray[np.float64]
 
 _AXES: dict[str, tuple[float, float, float]] = {"X": (1.0, 0.0, 0.0), "Y": (0.0, 1.0, 0.0), "Z": (0.0, 0.0, 1.0)}
 
-_FUNCTION_OPTIONS: dict[str, object] = {"cse": True}
+_FUNCTION_OPTIONS: dict[str, bool] = {"cse": True}
 """casadi Function options: common-subexpression elimination (fewer operations)."""
 
 

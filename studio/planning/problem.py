@@ -386,7 +386,7 @@ class StrikeProblem:
         cur_t = t0
         jerk = z * self.setup.scaling.jmax[:, None]
         while t - cur_t > 1e-15:
-            k = int(min(max(np.searchsorted(g.tb, cur_t + 1e-12, side="right") - 1, 0), n - 1))
+            k = min(max(int(np.searchsorted(g.tb, cur_t + 1e-12, side="right")) - 1, 0), n - 1)
             t_end = min(t, float(g.tb[k + 1]))
             A, B = chain_transition(self.setup.dynamics, t_end - cur_t)
             Z = np.einsum("nij,nj->ni", A, Z) + B * jerk[:, k][:, None]

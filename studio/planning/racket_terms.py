@@ -7,6 +7,9 @@ World frame, SI units; joint order of :mod:`studio.robot.model`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Protocol, cast
+
 import casadi as ca
 import numpy as np
 import numpy.typing as npt
@@ -14,6 +17,22 @@ import numpy.typing as npt
 from studio.planning.kinematics_casadi import CasadiKinematics
 
 FloatArray = npt.NDArray[np.float64]
+
+
+class _Buffer(Protocol):
+    """A ``casadi.FunctionBuffer`` as its Python binding is called: the binding reads the
+    size from the buffer, so ``set_arg(i, a)`` / ``set_res(i, a)`` take no ``size`` (the
+    casadi stub lists the C++ signature ``(i, a, size)``)."""
+
+    def set_arg(self, i: int, a: memoryview, /) -> None: ...
+
+    def set_res(self, i: int, a: memoryview, /) -> None: ...
+
+
+def _buffer(fn: ca.Function) -> tuple[_Buffer, Callable[[], None]]:
+    """``fn.buffer()``: the buffer to bind the numpy arrays to, and the evaluation trigger."""
+    buf, trigger = fn.buffer()
+    return cast(_Buffer, buf), trigger  # the stub's FunctionBuffer wants a size argument (see _Buffer)
 
 
 class RacketTerms:
@@ -29,9 +48,10 @@ class RacketTerms:
         self._terms_fn = ca.Function("terms_flat", [ca.vertcat(q, qd)], [flat], {"cse": True})
         self._terms_in = np.zeros(16)
         self._terms_out = np.zeros(9 + 4 * 24)
-        buf, self._terms_trigger = self._terms_fn.buffer()
-        buf.set_arg(0, memoryview(self._terms_in))
-        buf.set_res(0, memoryview(self._terms_out))
+        # arr.data is memoryview(arr) (numpy's stubs give ndarray the buffer protocol on Python >= 3.12 only)
+        buf, self._terms_trigger = _buffer(self._terms_fn)
+        buf.set_arg(0, self._terms_in.data)
+        buf.set_res(0, self._terms_out.data)
         self._terms_buf = buf  # keep alive
         w = ca.SX.sym("w", 9)
         xs = ca.vertcat(q, qd)
@@ -41,10 +61,10 @@ class RacketTerms:
         self._hess_in = np.zeros(16)
         self._hess_w = np.zeros(9)
         self._hess_out = np.zeros(256)
-        hbuf, self._hess_trigger = self._hess_fn.buffer()
-        hbuf.set_arg(0, memoryview(self._hess_in))
-        hbuf.set_arg(1, memoryview(self._hess_w))
-        hbuf.set_res(0, memoryview(self._hess_out))
+        hbuf, self._hess_trigger = _buffer(self._hess_fn)
+        hbuf.set_arg(0, self._hess_in.data)
+        hbuf.set_arg(1, self._hess_w.data)
+        hbuf.set_res(0, self._hess_out.data)
         self._hess_buf = hbuf  # keep alive
 
     def flat(self, s: FloatArray) -> FloatArray:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -25,6 +26,85 @@ from studio.robot.cup_hold import CupGrip, CupHoldCheck, check_cup_hold
 from studio.robot.model import JointDynamics, Robot
 
 FloatArray = npt.NDArray[np.float64]
+
+
+class TossCommands(Protocol):
+    """What a serve takes from a toss (a :class:`studio.toss.primitive.TossPrimitive`):
+    its 1 kHz commands, their derivatives and the predicted joint states."""
+
+    @property
+    def t(self) -> FloatArray:
+        """Sample times (N,) [s] on the toss clock."""
+        ...
+
+    @property
+    def u(self) -> FloatArray:
+        """Joint commands (N, 8)."""
+        ...
+
+    @property
+    def ud(self) -> FloatArray:
+        """Command velocities (N, 8)."""
+        ...
+
+    @property
+    def udd(self) -> FloatArray:
+        """Command accelerations (N, 8)."""
+        ...
+
+    @property
+    def uddd(self) -> FloatArray:
+        """Command jerks (N, 8)."""
+        ...
+
+    @property
+    def X(self) -> FloatArray:
+        """Predicted joint states (N, 8, 2): position, velocity."""
+        ...
+
+    @property
+    def dt(self) -> float:
+        """Command period [s]."""
+        ...
+
+    def index_at(self, time: float) -> int:
+        """Index of the sample at or just before ``time`` [s]."""
+        ...
+
+
+class _ReleaseTime(Protocol):
+    @property
+    def time(self) -> float:
+        """Release time [s] on the toss clock."""
+        ...
+
+
+class TossHold(Protocol):
+    """What the ball-in-cup check takes from a toss (a :class:`studio.toss.primitive.TossPrimitive`)."""
+
+    @property
+    def u(self) -> FloatArray:
+        """Joint commands (N, 8)."""
+        ...
+
+    @property
+    def X(self) -> FloatArray:
+        """Predicted joint states (N, 8, 2): position, velocity."""
+        ...
+
+    @property
+    def dt(self) -> float:
+        """Command period [s]."""
+        ...
+
+    @property
+    def release(self) -> _ReleaseTime:
+        """The predicted release of the ball from the cup."""
+        ...
+
+
+class ServeToss(TossCommands, TossHold, Protocol):
+    """A toss as :func:`plan_serve` takes it (a :class:`studio.toss.primitive.TossPrimitive`)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,7 +215,7 @@ def serve_arrays(
 
 
 def serve_cup_check(
-    robot: Robot, preparation: PreparationPhase, toss: object, *, grip: CupGrip | None = None
+    robot: Robot, preparation: PreparationPhase, toss: TossHold, *, grip: CupGrip | None = None
 ) -> CupHoldCheck:
     """The ball-in-cup check of preparation + toss on the serve clock (t = 0 at the start of
     the preparation), at every 1 kHz sample before the toss's predicted release from the
@@ -152,13 +232,13 @@ def serve_cup_check(
     return check_cup_hold(robot, t, u, q, qd, t_end=t_end, grip=grip)
 
 
-def start_from_toss(toss: object, t_switch: float) -> tuple[StrikeStart, int]:
+def start_from_toss(toss: TossCommands, t_switch: float) -> tuple[StrikeStart, int]:
     """Strike start state at the toss sample k at or before ``t_switch`` (toss clock):
     the predicted joint state ``toss.X[k]`` (at t_k) and the command state moved from
     the sample's interval midpoint (the commands' convention, see :class:`~studio.planning.strike.Plan`) back
     to t_k with the toss's jerk. Returns (start, k); the strike's first command then
     continues ``toss.u[:k]`` seamlessly."""
-    k = int(toss.index_at(t_switch))  # type: ignore[attr-defined]
+    k = int(toss.index_at(t_switch))
     tu, tud, tudd, tuddd, tX = (np.asarray(getattr(toss, f)) for f in ("u", "ud", "udd", "uddd", "X"))
     h = 0.5 * float(getattr(toss, "dt", COMMAND_DT))
     u0 = tu[k] - tud[k] * h + tudd[k] * h**2 / 2 - tuddd[k] * h**3 / 6
@@ -169,7 +249,7 @@ def start_from_toss(toss: object, t_switch: float) -> tuple[StrikeStart, int]:
 
 def plan_serve(
     planner: StrikePlanner,
-    toss: object,
+    toss: ServeToss,
     target: StrikeTarget,
     *,
     t_switch: float,
@@ -211,8 +291,8 @@ def plan_serve(
     dt = planner.options.dt
     if abs(getattr(toss, "dt", dt) - dt) > 1e-12:
         raise InvalidInputError(f"plan_serve: toss dt {getattr(toss, 'dt', None)} differs from the planner's {dt}")
-    if not (math.isfinite(t_switch) and 0.0 <= t_switch < float(toss.t[-1])):  # type: ignore[attr-defined]
-        raise InvalidInputError(f"plan_serve: t_switch = {t_switch} s outside the toss [0, {float(toss.t[-1])}]")  # type: ignore[attr-defined]
+    if not (math.isfinite(t_switch) and 0.0 <= t_switch < float(toss.t[-1])):
+        raise InvalidInputError(f"plan_serve: t_switch = {t_switch} s outside the toss [0, {float(toss.t[-1])}]")
     tu, tud, tudd, tX = (np.asarray(getattr(toss, f)) for f in ("u", "ud", "udd", "X"))
     start, k = start_from_toss(toss, t_switch)
     # 1. Preparation and hold.
@@ -227,7 +307,7 @@ def plan_serve(
     u = np.vstack([pu, tu[:k], su])
     n = u.shape[0]
     return ServePlan(
-        t=np.arange(n) * dt,
+        t=np.arange(n, dtype=np.float64) * dt,
         u=u,
         ud=np.vstack([pud, tud[:k], sud]),
         udd=np.vstack([pudd, tudd[:k], sudd]),

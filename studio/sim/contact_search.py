@@ -210,7 +210,7 @@ class ContactSearch:
         ta, h, ya, fa, yb, fb = step
         n_sub = max(1, math.ceil(span / self.options.substep - 1e-9))
         h_sub = span / n_sub
-        taus = w_lo + h_sub * np.arange(n_sub + 1)
+        taus = w_lo + h_sub * np.arange(n_sub + 1, dtype=np.float64)
         th = (taus - ta) / h if h > 0.0 else np.zeros(n_sub + 1)
         ones = np.ones((n_sub + 1, 1))
         Pb = hermite_rows(th, np.full(n_sub + 1, h), ones * ya[0:3], ones * fa[0:3], ones * yb[0:3], ones * fb[0:3])

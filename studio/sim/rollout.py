@@ -206,7 +206,7 @@ def rollout(
     Xa = _predicted_states(scene, tt, n_total, t_stop, u=u, X0=X0, X=X, dynamics=dynamics)
     Q = np.ascontiguousarray(Xa[:, :, 0])
     QD = np.ascontiguousarray(Xa[:, :, 1])
-    grid = t0 + dt * np.arange(n_total)
+    grid = t0 + dt * np.arange(n_total, dtype=np.float64)
     _check_flight(scene, flight)
 
     m = scene.model

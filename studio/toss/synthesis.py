@@ -132,7 +132,7 @@ def make_toss(
     t_rel_design, h_rel = _designed_release(profile, design.clear, duration, g_release)
     d = lift_direction(robot, q_start, z0, profile.travel, h_rel)
     path = LiftPath.along(robot, q_start, d, z0, profile.travel)
-    t = np.arange(int(round(duration / dt)) + 1) * dt
+    t = np.arange(int(round(duration / dt)) + 1, dtype=np.float64) * dt
     t_clear = t_rel_design + design.clear.delay
     qd = _joint_motion(robot, side, path, profile, design.clear, z0, t_clear, t + 0.5 * dt)  # half-sample lead: ZOH
     u, ud, udd, uddd = _invert_joint_model(robot, qd)

@@ -127,7 +127,8 @@ def _executed_cup_motion(
     through ``robot.dynamics``, and the release on that motion under ``flight``."""
     t = primitive.t
     X = robot.dynamics.simulate(primitive.u, primitive.dt, primitive.X[0])
-    cup = np.empty((t.size, 3))
+    # FloatArray, not the 2-D type: numpy's 2-D np.gradient overload returns a tuple even with axis=
+    cup: FloatArray = np.empty((t.size, 3))
     rot = np.empty((t.size, 3, 3))
     for k in range(t.size):
         cup[k] = robot.cup_position(X[k, :, 0])
