@@ -21,7 +21,7 @@ export unless the user raises that joint's limit (``studio.serve.efforts``).
     .venv/bin/python experiments/effort_limits.py [--samples 20000] [--seed 0]
 
 Prints the table and the values to put into the TOML (then
-``python -m studio.robot.description`` regenerates the URDF).
+``serve-studio robot-files`` regenerates the URDF).
 """
 
 from __future__ import annotations

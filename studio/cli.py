@@ -369,7 +369,31 @@ def _cmd_dashboard(args: argparse.Namespace) -> int:
 def _cmd_toss(args: argparse.Namespace) -> int:
     from studio.toss.report import toss_report
 
+    if args.generate:
+        from studio.toss.defaults import DEFAULT_N_TOSSES, DEFAULT_SEED, DEFAULT_TOSS_DIR, generate_default_recordings
+
+        out = args.out or DEFAULT_TOSS_DIR
+        n, seed = args.n or DEFAULT_N_TOSSES, DEFAULT_SEED if args.seed is None else args.seed
+        for path in generate_default_recordings(out, n=n, seed=seed):
+            print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB)")
+        args.csv = args.csv or str(Path(out) / f"{args.side}.csv")
     print(toss_report(side=args.side, csv_path=args.csv))
+    return 0
+
+
+def _cmd_robot_files(args: argparse.Namespace) -> int:
+    """Write the URDF and MJCF from the robot TOML, or ``--check`` them (exit 1 when stale)."""
+    from studio.robot.description import check_files, write_files
+
+    if args.check:
+        stale = check_files(args.out, spec_path=args.toml)
+        if stale:
+            print(f"out of date: {', '.join(stale)} (run serve-studio robot-files)", file=sys.stderr)
+            return 1
+        print("robot description files are up to date")
+        return 0
+    for path in write_files(args.out, spec_path=args.toml):
+        print(f"wrote {path}")
     return 0
 
 
@@ -729,7 +753,33 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p = sub.add_parser("toss", help="analyse toss recordings: lift time, rise, spread")
     p.add_argument("--side", choices=("right", "left"), default="right")
     p.add_argument("--csv", default=None, help="recordings CSV (toss_id,t,x,y,z); default: the shipped recordings")
+    p.add_argument(
+        "--generate", action="store_true", help="first write the default synthetic recordings (right.csv, left.csv)"
+    )
+    p.add_argument("--out", default=None, help="folder for --generate (default: the shipped data)")
+    p.add_argument(
+        "--n",
+        type=_bounded(int, 2, 10_000),
+        default=None,
+        help="tosses per side for --generate (default: the shipped 20)",
+    )
+    p.add_argument(
+        "--seed",
+        type=_bounded(int, 0, 2**32 - 1),
+        default=None,
+        help="random seed for --generate (default: the shipped data's)",
+    )
     handlers["toss"] = _cmd_toss
+
+    p = sub.add_parser(
+        "robot-files", help="write robots/serve_robot.urdf and .xml from robots/serve_robot.toml (--check: verify)"
+    )
+    p.add_argument(
+        "--check", action="store_true", help="only verify the committed files are up to date (exit 1 when stale)"
+    )
+    p.add_argument("--toml", type=Path, default=None, help="robot TOML (default: robots/serve_robot.toml)")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: robots/)")
+    handlers["robot-files"] = _cmd_robot_files
 
     p = sub.add_parser(
         "calibrate",

@@ -269,3 +269,11 @@ def test_export_beyond_the_effort_limits_is_refused_unless_raised(capsys: pytest
     assert entry.id == out["exported"]["id"] and entry.data["robot"]["efforts"]["limit"][0] == 5200.0
     assert main(["evaluate", path, "--effort-limit", "gantry_x=-1"]) == 2
     assert "gantry_x: must be a finite number > 0" in capsys.readouterr().err
+
+
+def test_toss_generate_writes_recordings_then_summarizes_them(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    assert main(["toss", "--generate", "--out", str(tmp_path), "--n", "4", "--seed", "3"]) == 0
+    out = capsys.readouterr().out
+    assert (tmp_path / "right.csv").exists() and (tmp_path / "left.csv").exists() and "wrote" in out
+    ids = {line.split(",")[0] for line in (tmp_path / "right.csv").read_text().splitlines() if line and not line.startswith(("#", "toss_id"))}
+    assert len(ids) == 4

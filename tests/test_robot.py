@@ -14,9 +14,10 @@ import pytest
 from scipy.optimize import least_squares
 
 from studio import constants as C
-from studio.robot import description as rd
+from studio.cli import main as cli_main
 from studio.errors import InvalidInputError, RobotModelError
 from studio.paths import robots_dir
+from studio.robot import description as rd
 from studio.robot.model import JointDynamics, JointLimits, Robot, load_robot
 
 TOML_PATH = robots_dir() / rd.TOML_NAME
@@ -42,7 +43,7 @@ def _random_qs(robot: Robot, n: int, seed: int) -> np.ndarray:
 
 def test_generated_files_up_to_date() -> None:
     assert rd.check_files() == []
-    assert rd.main(["--check"]) == 0
+    assert cli_main(["robot-files", "--check"]) == 0
 
 
 def test_check_detects_stale_file(tmp_path: Path) -> None:
@@ -51,7 +52,7 @@ def test_check_detects_stale_file(tmp_path: Path) -> None:
     urdf = tmp_path / rd.URDF_NAME
     urdf.write_text(urdf.read_text().replace('name="a3"', 'name="a3x"'))
     assert rd.check_files(tmp_path) == [rd.URDF_NAME]
-    assert rd.main(["--check", "--out", str(tmp_path)]) == 1
+    assert cli_main(["robot-files", "--check", "--out", str(tmp_path)]) == 1
 
 
 def test_pinocchio_and_mujoco_agree(robot: Robot) -> None:
@@ -308,8 +309,14 @@ def test_joint_dynamics_validation() -> None:
     with pytest.raises(InvalidInputError, match="wn"):
         JointDynamics(names=names, wn=np.zeros(8), zeta=np.ones(8))
     with pytest.raises(InvalidInputError, match="lower"):
-        JointLimits(names=names, lower=np.ones(8), upper=np.zeros(8), velocity=np.ones(8),
-                    acceleration=np.ones(8), jerk=np.ones(8))
+        JointLimits(
+            names=names,
+            lower=np.ones(8),
+            upper=np.zeros(8),
+            velocity=np.ones(8),
+            acceleration=np.ones(8),
+            jerk=np.ones(8),
+        )
 
 
 # --- placement: reachability and named poses ----------------------------------------
@@ -448,7 +455,10 @@ def test_joint_efforts_are_rigid_body_dynamics() -> None:
         for k in range(8):
             dq = np.zeros(8)
             dq[k] = 1e-6
-            grad[k] = (pin.computePotentialEnergy(robot.model, robot.data, q + dq) - pin.computePotentialEnergy(robot.model, robot.data, q - dq)) / 2e-6
+            grad[k] = (
+                pin.computePotentialEnergy(robot.model, robot.data, q + dq)
+                - pin.computePotentialEnergy(robot.model, robot.data, q - dq)
+            ) / 2e-6
         np.testing.assert_allclose(tau, grad, atol=1e-4)
     carried = sum(robot.model.inertias[j].mass for j in range(1, robot.model.njoints))
     a = np.zeros(8)

@@ -64,7 +64,7 @@ RACKET_DATA_DIR = DATA_DIR / "racket_bounces"
 
 RACKET_MODELS_JSON = RACKET_DATA_DIR / "racket_models.json"
 """Calibrated :class:`RacketModel` parameters with their fit figures, written by
-``python -m studio.physics.ball_calibration --write``."""
+``serve-studio calibrate --write``."""
 
 DEFAULT_RACKET = "racket_01"
 """Racket of the serve robot: an offensive blade with offensive inverted rubber."""

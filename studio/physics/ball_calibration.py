@@ -11,13 +11,12 @@ compliance ``k_p`` + restitution linear in the normal speed).
 Table: :func:`tune_table_restitution` finds the restitution that makes the ITTF Law
 2.1.3 drop test (30 cm drop, air drag included) bounce to 23 cm.
 
-Entry point: ``python -m studio.physics.ball_calibration [--folds K] [--write]`` prints the
+Entry point: ``serve-studio calibrate [--folds K] [--write]`` prints the
 cross-validation table (``--write`` also refreshes ``racket_models.json``).
 """
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import math
@@ -760,33 +759,3 @@ def format_table(results: dict[str, RacketCalibration]) -> str:
         params = ", ".join(f"{n}={getattr(res.model, n):.4g}" for n in RacketModel.PARAMETERS)
         lines.append(f"{racket}: {params}")
     return "\n".join(lines)
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Fit the racket models, print the k-fold CV table; ``--write`` refreshes the JSON."""
-    parser = argparse.ArgumentParser(prog="python -m studio.physics.ball_calibration", description=main.__doc__)
-    parser.add_argument("--folds", type=int, default=5, help="number of cross-validation folds (default 5)")
-    parser.add_argument("--repeats", type=int, default=1, help="random fold splits pooled (default 1)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the random fold split (default 0)")
-    parser.add_argument("--write", action="store_true", help=f"write the fitted models to {RACKET_MODELS_JSON}")
-    parser.add_argument("--drop-test", action="store_true", help="also tune the table restitution (ITTF drop test)")
-    args = parser.parse_args(list(argv) if argv is not None else None)
-    try:
-        results = calibrate(folds=args.folds, seed=args.seed, repeats=args.repeats)
-    except (InvalidInputError, DataFileError) as exc:
-        print(f"error: {exc}")
-        return 2
-    print(format_table(results))
-    if args.drop_test:
-        e = tune_table_restitution()
-        print(
-            f"\ntable restitution for a {C.DROP_TEST_HEIGHT * 100:.0f} cm -> {C.DROP_TEST_REBOUND * 100:.0f} cm drop test: {e:.4f}"
-        )
-    if args.write:
-        write_models_json(results)
-        print(f"\nwrote {RACKET_MODELS_JSON}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

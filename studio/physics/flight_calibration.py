@@ -25,17 +25,15 @@ bounces, the restitution then being re-tuned to the ITTF drop test
 (:func:`studio.physics.ball_calibration.tune_table_restitution`). :func:`calibrate_flight` runs
 it all and :func:`format_flight_table` prints the calibration table.
 
-Entry point: ``python -m studio.physics.flight_calibration [--csv PATH] [--write]``.
+Entry point: ``serve-studio calibrate --match [--csv PATH] [--write]``.
 """
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import math
 import os
-import sys
 import tempfile
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, fields, replace
@@ -1527,27 +1525,3 @@ def write_flight_json(res: FlightCalibration, path: Path = FLIGHT_MODEL_JSON) ->
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m studio.physics.flight_calibration [--csv PATH] [--folds K] [--no-cv] [--write]``."""
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0] if __doc__ else None)
-    ap.add_argument("--csv", type=Path, default=None, help=f"match data CSV (default {DEFAULT_MATCH_CSV})")
-    ap.add_argument("--folds", type=int, default=5, help="rally groups of the rally cross-validation")
-    ap.add_argument("--no-cv", action="store_true", help="skip both cross-validations")
-    ap.add_argument("--write", action="store_true", help=f"also write {FLIGHT_MODEL_JSON}")
-    args = ap.parse_args(argv)
-    try:
-        res = calibrate_flight(args.csv, folds=args.folds, player_cv=not args.no_cv, rally_cv=not args.no_cv)
-    except (DataFileError, InvalidInputError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print(format_flight_table(res))
-    if args.write:
-        write_flight_json(res)
-        print(f"wrote {FLIGHT_MODEL_JSON}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

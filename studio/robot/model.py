@@ -524,7 +524,7 @@ def load_robot(urdf_path: str | Path | None = None, *, spec_path: str | Path | N
         if not np.allclose(urdf_vals, toml_vals, rtol=0, atol=1e-8):
             raise RobotModelError(
                 f"{path}: joint {name!r} limits {urdf_vals} differ from {spec_path}: {toml_vals} "
-                "(regenerate with python -m studio.robot.description)"
+                "(regenerate with serve-studio robot-files)"
             )
     for frame in (RACKET_FRAME, BALL_CUP_FRAME):
         if not model.existFrame(frame):

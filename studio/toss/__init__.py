@@ -16,5 +16,5 @@ One concept per module:
   :mod:`~studio.toss.local_fit`: the steps of the toss model;
 - :mod:`~studio.toss.model`: the toss model (:class:`~studio.toss.model.TossModel`);
 - :mod:`~studio.toss.defaults`: the shipped tosses (:func:`~studio.toss.defaults.load_default_toss_model`,
-  ``python -m studio.toss.model --generate``); :mod:`~studio.toss.report`: their summary.
+  ``serve-studio toss --generate``); :mod:`~studio.toss.report`: their summary.
 """

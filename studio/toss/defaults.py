@@ -1,6 +1,6 @@
 """The shipped default tosses: their primitives, the recordings in ``studio/data/tosses``,
 their toss models (cached), and the generator of those recordings
-(``python -m studio.toss.model --generate``, :func:`main`).
+(``serve-studio toss --generate``).
 """
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ def generate_default_recordings(
             recs,
             decimals=4,
             comment=(
-                f"Synthetic recordings of the default {side} toss (python -m studio.toss.model --generate, "
+                f"Synthetic recordings of the default {side} toss (serve-studio toss --generate, "
                 f"seed {seed}, {n} tosses, default TossNoise).\n"
                 "Columns: toss_id, t [s] (camera clock, random offset per toss), x, y, z [m] ball centre, "
                 "world frame (origin table centre, +X to the receiver, +Z up)."
@@ -103,26 +103,3 @@ def generate_default_recordings(
         )
         written.append(path)
     return written
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m studio.toss.model [--generate] [--out DIR] [--n N] [--seed S]``: write the
-    default synthetic recordings (``--generate``) and print a summary of the models."""
-    import argparse
-
-    ap = argparse.ArgumentParser(prog="python -m studio.toss.model", description=main.__doc__)
-    ap.add_argument("--generate", action="store_true", help="write right.csv and left.csv")
-    ap.add_argument("--out", default=str(DEFAULT_TOSS_DIR), help="output folder (default: the shipped data)")
-    ap.add_argument("--n", type=int, default=DEFAULT_N_TOSSES, help="tosses per side")
-    ap.add_argument("--seed", type=int, default=DEFAULT_SEED, help="random seed")
-    args = ap.parse_args(argv)
-    from studio.robot.model import load_robot
-    from studio.toss.report import toss_report
-
-    if args.generate:
-        for path in generate_default_recordings(args.out, n=args.n, seed=args.seed):
-            print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB)")
-    robot = load_robot()
-    for side in TOSS_SIDES:
-        print(toss_report(side, Path(args.out) / f"{side}.csv", robot=robot))
-    return 0

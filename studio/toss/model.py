@@ -6,8 +6,8 @@ Times are on the *command clock* of the toss primitive (``t = 0`` is the first s
 ``u_t``); recordings carry their own clock until aligned. World frame of ``DESIGN.md``
 (origin at the centre of the playing surface, +X towards the receiver, +Z up), SI units.
 
-``python -m studio.toss.model [--generate] ...`` runs :func:`studio.toss.defaults.main`
-(the shipped recordings and their summary).
+``serve-studio toss --generate ...`` writes the shipped recordings (:func:`studio.toss.defaults.generate_default_recordings`)
+(and prints their summary).
 """
 
 from __future__ import annotations
@@ -383,9 +383,3 @@ def _smoothed_paths(
         for j in range(3):
             Acc[k, :, j] = np.interp(grid, tu, as_[:, j])
     return grid, P, V, Acc
-
-
-if __name__ == "__main__":
-    from studio.toss.defaults import main
-
-    raise SystemExit(main())
