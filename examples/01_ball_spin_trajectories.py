@@ -23,8 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.patches import Rectangle
 
-from studio.physics import ball as B
-from studio.physics.court import DEFAULT_COURT
+import studio
 
 SPIN = 200.0
 """Spin magnitude of the examples [rad/s]."""
@@ -39,7 +38,7 @@ COLORS = ("0.3", "tab:red", "tab:blue", "tab:green")
 
 
 def main(out: Path) -> None:
-    court = DEFAULT_COURT
+    court = studio.DEFAULT_COURT
     launch_p, launch_v = (-1.5, 0.0, 0.3), (4.5, 0.0, -2.5)
     fig, (ax_side, ax_top) = plt.subplots(
         2, 1, figsize=(12, 7.5), constrained_layout=True, gridspec_kw={"height_ratios": [1.0, 1.6]}
@@ -52,24 +51,30 @@ def main(out: Path) -> None:
     ax_top.plot([0, 0], [-court.net_half_span, court.net_half_span], color="k", lw=2)
     ax_top.plot([-hl, hl], [0, 0], color="w", lw=1)
 
-    print(f"{'case':<34} {'1st bounce (x, y) [m]':>24} {'2nd bounce (x, y) [m]':>24} {'after 2nd: top/back, side [rad/s]':>36}")
+    print(
+        f"{'case':<34} {'1st bounce (x, y) [m]':>24} {'2nd bounce (x, y) [m]':>24} {'after 2nd: top/back, side [rad/s]':>36}"
+    )
     for (label, w), color in zip(CASES.items(), COLORS, strict=True):
-        traj = B.simulate(B.BallState(np.array(launch_p), np.array(launch_v), np.array(w)), 1.5, max_table_bounces=2)
+        traj = studio.simulate(
+            studio.BallState(np.array(launch_p), np.array(launch_v), np.array(w)), 1.5, max_table_bounces=2
+        )
         ax_side.plot(traj.p[:, 0], traj.p[:, 2], color=color, label=label)
         ax_top.plot(traj.p[:, 0], traj.p[:, 1], color=color, label=label)
         bounces = traj.table_bounces
         for e in bounces:
-            ax_side.plot(e.p[0], e.p[2] - B.DEFAULT_FLIGHT.radius, "o", color=color, ms=5)
+            ax_side.plot(e.p[0], e.p[2] - studio.DEFAULT_FLIGHT.radius, "o", color=color, ms=5)
             ax_top.plot(e.p[0], e.p[1], "o", color=color, ms=5)
         cells = [f"({e.p[0]:+.2f}, {e.p[1]:+.2f})" for e in bounces[:2]] + ["-"] * (2 - len(bounces[:2]))
         if len(bounces) >= 2:
-            tb, ss, _ = B.spin_components(bounces[1].v_after, bounces[1].w_after)
+            tb, ss, _ = studio.spin_components(bounces[1].v_after, bounces[1].w_after)
             spin = f"{float(tb):+7.1f}, {float(ss):+7.1f}"
         else:
             spin = "-"
         print(f"{label:<34} {cells[0]:>24} {cells[1]:>24} {spin:>36}")
 
-    ax_side.set(xlabel="x [m] (towards the receiver)", ylabel="z [m]", title="Side view", xlim=(-1.7, 1.7), ylim=(-0.05, 0.45))
+    ax_side.set(
+        xlabel="x [m] (towards the receiver)", ylabel="z [m]", title="Side view", xlim=(-1.7, 1.7), ylim=(-0.05, 0.45)
+    )
     ax_side.set_aspect("equal")
     ax_top.set(xlabel="x [m]", ylabel="y [m]", title="Top view", xlim=(-1.7, 1.7), ylim=(-0.95, 0.95))
     ax_top.set_aspect("equal")

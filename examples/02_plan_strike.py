@@ -18,21 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from studio.robot.collision import CollisionChecker
-from studio.serve.evaluate import SWITCH_DELAY, strike_target
-from studio.planning.planner import StrikePlanner
-from studio.planning.serve_plan import start_from_toss
-from studio.planning.strike import Plan, StrikeTarget
-from studio.robot.model import load_robot
-from studio.serve.params import load_serve
-from studio.toss.defaults import load_default_toss_model
+import studio
 
 DEFAULT_SERVE = Path(__file__).resolve().parent / "serves" / "topspin_right.json"
 SPEED_SCALES = (0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0)
 """Racket velocity scales of the sweep [-]."""
 
 
-def describe(plan: Plan) -> str:
+def describe(plan: studio.Plan) -> str:
     """One line: status, solve time, QPs, errors at tau (or the reason)."""
     if not plan.ok:
         return f"{plan.status:<10} {plan.solve_time_ms:7.1f} ms  {plan.reason}"
@@ -43,21 +36,25 @@ def describe(plan: Plan) -> str:
 
 
 def main(serve_path: Path) -> None:
-    robot = load_robot()
-    planner = StrikePlanner(robot)
-    checker = CollisionChecker(robot)
-    serve = load_serve(serve_path)
-    toss = load_default_toss_model(serve.side, robot)
+    robot = studio.load_robot()
+    planner = studio.StrikePlanner(robot)
+    checker = studio.CollisionChecker(robot)
+    serve = studio.load_serve(serve_path)
+    toss = studio.load_default_toss_model(serve.side, robot)
     prim = toss.primitive
-    t_switch = float(prim.t[prim.index_at(toss.t_lift + SWITCH_DELAY)])
-    start, _ = start_from_toss(prim, t_switch)  # commands and predicted joint state at the hand-over
-    racket = strike_target(serve, toss)  # world frame, from the toss's mean path at tau
+    t_switch = float(prim.t[prim.index_at(toss.t_lift + studio.SWITCH_DELAY)])
+    start, _ = studio.start_from_toss(prim, t_switch)  # commands and predicted joint state at the hand-over
+    racket = studio.strike_target(serve, toss)  # world frame, from the toss's mean path at tau
     p = serve.params
-    print(f"serve {serve.name!r} ({serve.side} toss): contact at tau = {p.tau:.3f} s, racket at {np.round(racket.position, 3)} m")
-    print(f"  normal {np.round(racket.normal, 3)}, velocity {np.round(racket.velocity, 2)} m/s, back at rest {p.t_return:.2f} s later\n")
+    print(
+        f"serve {serve.name!r} ({serve.side} toss): contact at tau = {p.tau:.3f} s, racket at {np.round(racket.position, 3)} m"
+    )
+    print(
+        f"  normal {np.round(racket.normal, 3)}, velocity {np.round(racket.velocity, 2)} m/s, back at rest {p.t_return:.2f} s later\n"
+    )
 
-    def target(scale: float) -> StrikeTarget:
-        return StrikeTarget(
+    def target(scale: float) -> studio.StrikeTarget:
+        return studio.StrikeTarget(
             tau=p.tau - t_switch,  # on the strike's own clock (0 = hand-over)
             position=np.asarray(racket.position),
             normal=np.asarray(racket.normal),

@@ -15,8 +15,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from studio.serve.evaluate import EvaluationContext, evaluate_robust, evaluate_serve, report_markdown
-from studio.serve.params import load_serve
+import studio
 
 DEFAULT_SERVE = Path(__file__).resolve().parent / "serves" / "backspin_left.json"
 ROBUST_TOSSES = 10
@@ -24,12 +23,12 @@ ROBUST_TOSSES = 10
 
 
 def main(serve_path: Path, task: str) -> None:
-    context = EvaluationContext.default()  # robot, toss models, planner, collision model
-    serve = load_serve(serve_path)
-    ev = evaluate_serve(serve, context, task=task)
-    status, checks, metrics = report_markdown(ev)
+    context = studio.EvaluationContext.default()  # robot, toss models, planner, collision model
+    serve = studio.load_serve(serve_path)
+    ev = studio.evaluate_serve(serve, context, task=task)
+    status, checks, metrics = studio.report_markdown(ev)
     print(status, checks, metrics, sep="\n\n")
-    robust = evaluate_robust(serve, context, task=task, tosses=ROBUST_TOSSES)
+    robust = studio.evaluate_robust(serve, context, task=task, tosses=ROBUST_TOSSES)
     print(
         f"\nover {ROBUST_TOSSES} recorded tosses: legal on {100 * robust.legal_fraction:.0f} % "
         f"(robustly legal: {robust.legal}), mean reward {robust.reward:+.3f}, failing checks {robust.failed_checks() or 'none'}"

@@ -19,14 +19,12 @@ import argparse
 import shutil
 from pathlib import Path
 
-from studio.serve.evaluate import EvaluationContext
-from studio.optimize.optimizer import OptimizationResult, optimize_serve
-from studio.serve.params import ServeParams, load_serve
+import studio
 
 SEED_SERVE = Path(__file__).resolve().parent / "serves" / "backspin_right.json"
 
 
-def progress(done: int, total: int, best: float, params: ServeParams | None) -> None:
+def progress(done: int, total: int, best: float, params: studio.ServeParams | None) -> None:
     tau = f", best tau {params.tau:.3f} s" if params is not None else ""
     print(f"  {done:4d} / {total} evaluations, best reward {best:+.3f}{tau}")
 
@@ -38,22 +36,34 @@ def main() -> None:
     parser.add_argument("--task", default="backspin")
     parser.add_argument("--run-dir", type=Path, default=Path(__file__).resolve().parent / "out" / "04_run")
     args = parser.parse_args()
-    seed = load_serve(SEED_SERVE)
-    context = EvaluationContext.for_training()  # in-process evaluation, no IPOPT fallback
+    seed = studio.load_serve(SEED_SERVE)
+    context = studio.EvaluationContext.for_training()  # in-process evaluation, no IPOPT fallback
     shutil.rmtree(args.run_dir, ignore_errors=True)
 
-    def run_batches(iterations: int, *, resume: bool) -> OptimizationResult:
-        return optimize_serve(
-            side=seed.side, task=args.task, run_dir=args.run_dir, context=context, seeds=[seed],
-            iterations=iterations, population=args.population, seed=0, workers=1, progress=progress,
-            top_k=3, final_tosses=5, resume=resume,
+    def run_batches(iterations: int, *, resume: bool) -> studio.OptimizationResult:
+        return studio.optimize_serve(
+            side=seed.side,
+            task=args.task,
+            run_dir=args.run_dir,
+            context=context,
+            seeds=[seed],
+            iterations=iterations,
+            population=args.population,
+            seed=0,
+            workers=1,
+            progress=progress,
+            top_k=3,
+            final_tosses=5,
+            resume=resume,
         )
 
     print(f"HEBO, {args.iterations} x {args.population}, seeded with {seed.name!r}:")
     first = run_batches(args.iterations, resume=False)
     print(f"resumed for {args.iterations} more batches:")
     run = run_batches(2 * args.iterations, resume=True)
-    print(f"\n{first.evaluations} evaluations, then {run.evaluations} after the resume (log: {args.run_dir / 'evaluations.jsonl'})")
+    print(
+        f"\n{first.evaluations} evaluations, then {run.evaluations} after the resume (log: {args.run_dir / 'evaluations.jsonl'})"
+    )
     if run.best is None or run.summary is None:
         print("nothing evaluated")
         return

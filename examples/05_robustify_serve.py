@@ -19,9 +19,7 @@ import shutil
 import threading
 from pathlib import Path
 
-from studio.serve.evaluate import EvaluationContext
-from studio.optimize.robust import RobustScore, robustify_serve
-from studio.serve.params import load_serve
+import studio
 
 DEFAULT_SERVE = Path(__file__).resolve().parent / "serves" / "sidespin_left.json"
 
@@ -33,19 +31,21 @@ def main() -> None:
     parser.add_argument("--run-dir", type=Path, default=Path(__file__).resolve().parent / "out" / "05_run")
     args = parser.parse_args()
     shutil.rmtree(args.run_dir, ignore_errors=True)
-    serve = load_serve(args.serve)
-    context = EvaluationContext.default()
+    serve = studio.load_serve(args.serve)
+    context = studio.EvaluationContext.default()
 
     stop = threading.Event()
 
-    def progress(done: int, total: int, best: RobustScore) -> None:
+    def progress(done: int, total: int, best: studio.RobustScore) -> None:
         print(f"  {done:4d} / {total} candidates, best legal on {best.legal}/{best.tosses} recorded tosses")
         if done >= args.evaluations // 2:
             stop.set()  # as a user pressing Stop (or Ctrl+C on the CLI)
 
-    first = robustify_serve(serve, context=context, evaluations=args.evaluations, run_dir=args.run_dir, progress=progress, stop=stop)
+    first = studio.robustify_serve(
+        serve, context=context, evaluations=args.evaluations, run_dir=args.run_dir, progress=progress, stop=stop
+    )
     print(f"stopped after {first.evaluations} candidates; resuming")
-    res = robustify_serve(
+    res = studio.robustify_serve(
         serve, context=context, evaluations=args.evaluations, run_dir=args.run_dir, resume=True,
         progress=lambda done, total, best: print(f"  {done:4d} / {total} candidates, best legal on {best.legal}/{best.tosses}"),
     )  # fmt: skip
@@ -53,7 +53,9 @@ def main() -> None:
     logged = sum(1 for _ in open(args.run_dir / "robustify.jsonl"))
     print(f"{logged} candidates logged in {args.run_dir}")
     if res.improved:
-        print(f"genes: tau {res.serve.params.tau:.4f} s, racket velocity {tuple(round(v, 3) for v in res.serve.params.velocity)} m/s")
+        print(
+            f"genes: tau {res.serve.params.tau:.4f} s, racket velocity {tuple(round(v, 3) for v in res.serve.params.velocity)} m/s"
+        )
 
 
 if __name__ == "__main__":

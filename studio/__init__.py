@@ -28,6 +28,17 @@ from typing import TYPE_CHECKING, Any
 __version__ = "0.1.0"
 
 _API: dict[str, str] = {
+    # used by the examples and notebooks beside the names above
+    "DEFAULT_COURT": "studio.physics.court",
+    "DEFAULT_FLIGHT": "studio.physics.ball",
+    "CollisionChecker": "studio.robot.collision",
+    "Plan": "studio.planning.strike",
+    "start_from_toss": "studio.planning.serve_plan",
+    "SWITCH_DELAY": "studio.serve.evaluate",
+    "strike_target": "studio.serve.evaluate",
+    "report_markdown": "studio.serve.evaluate",
+    "OptimizationResult": "studio.optimize.optimizer",
+    "RobustScore": "studio.optimize.robust",
     # errors
     "StudioError": "studio.errors",
     "InvalidInputError": "studio.errors",
@@ -75,6 +86,9 @@ _API: dict[str, str] = {
 
 __all__ = [
     "BallState",
+    "CollisionChecker",
+    "DEFAULT_COURT",
+    "DEFAULT_FLIGHT",
     "DataFileError",
     "EffortLimitError",
     "Evaluation",
@@ -83,8 +97,12 @@ __all__ = [
     "HandServe",
     "InvalidInputError",
     "LimitScale",
+    "OptimizationResult",
+    "Plan",
     "RacketModel",
     "Robot",
+    "RobustScore",
+    "SWITCH_DELAY",
     "ServeLibrary",
     "ServeParams",
     "StrikePlanner",
@@ -102,12 +120,15 @@ __all__ = [
     "match_stats",
     "optimize_serve",
     "plan_serve",
+    "report_markdown",
     "robustify_serve",
     "rollout",
     "save_serve",
     "select_next",
     "simulate",
     "spin_components",
+    "start_from_toss",
+    "strike_target",
     "train_serves",
 ]
 
@@ -116,16 +137,34 @@ if TYPE_CHECKING:
     from studio.library.match import match_stats
     from studio.library.selection import select_next
     from studio.library.store import ServeLibrary
-    from studio.optimize.optimizer import optimize_serve
-    from studio.optimize.robust import robustify_serve
+    from studio.optimize.optimizer import OptimizationResult, optimize_serve
+    from studio.optimize.robust import RobustScore, robustify_serve
     from studio.optimize.training import TrainConfig, train_serves
-    from studio.physics.ball import BallState, FlightModel, RacketModel, TableBounceModel, simulate, spin_components
+    from studio.physics.ball import (
+        DEFAULT_FLIGHT,
+        BallState,
+        FlightModel,
+        RacketModel,
+        TableBounceModel,
+        simulate,
+        spin_components,
+    )
+    from studio.physics.court import DEFAULT_COURT
     from studio.planning.planner import StrikePlanner
-    from studio.planning.serve_plan import plan_serve
-    from studio.planning.strike import StrikeTarget
+    from studio.planning.serve_plan import plan_serve, start_from_toss
+    from studio.planning.strike import Plan, StrikeTarget
+    from studio.robot.collision import CollisionChecker
     from studio.robot.model import Robot, load_robot
     from studio.serve.efforts import EffortLimitError, effort_report
-    from studio.serve.evaluate import Evaluation, EvaluationContext, evaluate_robust, evaluate_serve
+    from studio.serve.evaluate import (
+        SWITCH_DELAY,
+        Evaluation,
+        EvaluationContext,
+        evaluate_robust,
+        evaluate_serve,
+        report_markdown,
+        strike_target,
+    )
     from studio.serve.params import HandServe, LimitScale, ServeParams, load_serve, save_serve
     from studio.sim.rollout import rollout
     from studio.toss.defaults import load_default_toss_model
