@@ -8,8 +8,15 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from studio.optimize.optimizer import OptimizationResult
+    from studio.serve.efforts import EffortReport
+    from studio.serve.evaluate import Evaluation, EvaluationContext, RobustEvaluation
+    from studio.serve.params import HandServe, LimitScale
 
 Handler = Callable[[argparse.Namespace], int]
 
@@ -44,122 +51,168 @@ def _effort_limits(args: argparse.Namespace) -> dict[str, float]:
     return parse_limits(args.effort_limit, load_spec().joint_names)
 
 
-def _cmd_evaluate(args: argparse.Namespace) -> int:
-    import json
-    from dataclasses import replace
+@dataclass
+class _EvaluateRun:
+    """What ``serve-studio evaluate`` found for one serve, gathered for the export and the report."""
 
+    serve: HandServe
+    """The serve evaluated (its limit scale replaced by ``--limit-scale``)."""
+    task: str
+    """Reward task preset."""
+    evaluation: Evaluation
+    """The evaluation shown (with ``--tosses``: the first recorded toss's)."""
+    robust: RobustEvaluation | None
+    """The robust evaluation (``--tosses`` > 1), else None."""
+    payload: dict[str, Any]
+    """The JSON report."""
+    efforts: EffortReport | None = None
+    """The effort report with the ``--effort-limit`` limits, if the plan has one."""
+    exported_note: str = ""
+    """Added to the export line of the report."""
+    refused: str | None = None
+    """Why the library refused the export, if it did."""
+
+
+def _check_evaluate_args(args: argparse.Namespace) -> None:
+    """Refuse option combinations ``evaluate`` cannot honour (InvalidInputError)."""
     from studio.errors import InvalidInputError
-    from studio.serve.efforts import EffortLimitError
-    from studio.serve.evaluate import (
-        EvaluationContext,
-        effort_report,
-        evaluate_motion,
-        evaluate_robust,
-        evaluate_serve,
-        report_markdown,
-    )
-    from studio.serve.params import LimitScale, load_serve
 
     if args.mujoco and args.tosses > 1:
         raise InvalidInputError(
             "--mujoco cannot be combined with --tosses > 1: the MuJoCo rollout tosses the ball from the cup as the motion "
             "predicts, it cannot replay recorded tosses (use --mujoco alone, or --tosses without it)"
         )
-    effort_limits = _effort_limits(args)
+
+
+def _evaluated_serve(args: argparse.Namespace) -> HandServe:
+    """The ``evaluate`` command's serve file, with the ``--limit-scale`` given."""
+    from dataclasses import replace
+
+    from studio.serve.params import LimitScale, load_serve
+
     serve = load_serve(args.serve)
     if args.limit_scale is not None:
         serve = replace(serve, limit_scale=LimitScale.parse(args.limit_scale))
-    context = EvaluationContext.default()
+    return serve
+
+
+def _run_evaluation(args: argparse.Namespace, serve: HandServe, context: EvaluationContext) -> _EvaluateRun:
+    """Evaluate the serve on the mean toss (or ``--mujoco``), or on ``--tosses`` recorded tosses."""
+    from studio.serve.evaluate import evaluate_robust, evaluate_serve
+
     task = args.task or serve.task or "topspin_velocity"
-    robust = None
     if args.tosses > 1:
         robust = evaluate_robust(serve, context, task=task, tosses=args.tosses, min_legal_fraction=args.legal_fraction)
         evaluation = robust.evaluations[0]  # the checks and metrics shown: one recorded toss
-        payload = robust.to_json()
+        return _EvaluateRun(serve, task, evaluation, robust, robust.to_json())
+    evaluation = evaluate_serve(serve, context, task=task, mujoco=args.mujoco)
+    return _EvaluateRun(serve, task, evaluation, None, evaluation.to_json())
+
+
+def _robust_provenance(robust: RobustEvaluation) -> dict[str, object]:
+    """The robust result as it goes into a library entry's provenance."""
+    return {
+        "tosses": len(robust.evaluations),
+        "toss_samples": list(robust.samples),
+        "legal": robust.legal,
+        "legal_fraction": robust.legal_fraction,
+        "min_legal_fraction": robust.min_legal_fraction,
+        "mean_reward": robust.reward,
+    }
+
+
+def _export_evaluation(
+    args: argparse.Namespace, run: _EvaluateRun, context: EvaluationContext, effort_limits: dict[str, float]
+) -> None:
+    """Add the evaluated plan to the ``--export`` library; the outcome (or refusal) goes into ``run``."""
+    from studio.library.store import ServeLibrary
+    from studio.serve.efforts import EffortLimitError
+    from studio.serve.evaluate import evaluate_motion
+
+    exported = run.evaluation
+    provenance: dict[str, object] = {"kind": "hand-designed", "file": str(args.serve)}
+    if run.robust is not None:
+        # The library holds mean-toss evaluations (as optimize and train export): the same
+        # plan on the mean toss path, never one sampled toss's; the robust result goes along.
+        exported = evaluate_motion(run.evaluation.motion, context, task=run.task)
+        provenance["robust"] = _robust_provenance(run.robust)
+        run.exported_note = (
+            f" (the mean toss path's evaluation: {'legal' if exported.legal else 'not legal'}, reward {exported.reward.total:+.3f}; "
+            "the robust result is in its provenance)"
+        )
+    try:
+        entry = ServeLibrary(args.export).add(
+            exported,
+            provenance=provenance,
+            task=run.task,
+            preparation=context.preparation(run.serve.side),
+            effort_limits=effort_limits,
+        )
+    except EffortLimitError as err:  # the report goes out first, then the refusal
+        run.refused = str(err)
+        run.payload["exported"] = {"library": str(args.export), "refused": run.refused}
     else:
-        evaluation = evaluate_serve(serve, context, task=task, mujoco=args.mujoco)
-        payload = evaluation.to_json()
-    efforts = effort_report(evaluation.motion, context.robot)
-    efforts = efforts.with_limits(effort_limits) if efforts is not None else None
-    payload["efforts"] = efforts.to_json() if efforts is not None else None
-    exported_note = ""
-    refused = None
-    if args.export:
-        from studio.library.store import ServeLibrary
-
-        exported = evaluation
-        provenance: dict[str, object] = {"kind": "hand-designed", "file": str(args.serve)}
-        if robust is not None:
-            # The library holds mean-toss evaluations (as optimize and train export): the same
-            # plan on the mean toss path, never one sampled toss's; the robust result goes along.
-            exported = evaluate_motion(evaluation.motion, context, task=task)
-            provenance["robust"] = {
-                "tosses": len(robust.evaluations),
-                "toss_samples": list(robust.samples),
-                "legal": robust.legal,
-                "legal_fraction": robust.legal_fraction,
-                "min_legal_fraction": robust.min_legal_fraction,
-                "mean_reward": robust.reward,
-            }
-            exported_note = (
-                f" (the mean toss path's evaluation: {'legal' if exported.legal else 'not legal'}, reward {exported.reward.total:+.3f}; "
-                "the robust result is in its provenance)"
-            )
-        try:
-            entry = ServeLibrary(args.export).add(
-                exported,
-                provenance=provenance,
-                task=task,
-                preparation=context.preparation(serve.side),
-                effort_limits=effort_limits,
-            )
-        except EffortLimitError as err:  # the report goes out first, then the refusal
-            refused = str(err)
-            payload["exported"] = {"library": str(args.export), "refused": refused}
-        else:
-            payload["exported"] = {
-                "library": str(args.export),
-                "id": entry.id,
-                "toss": "mean",
-                "legal": exported.legal,
-                "reward": exported.reward.total,
-            }
-    if args.json:
-        print(json.dumps(payload, indent=2))
-    else:
-        status, checks, metrics = report_markdown(evaluation)
-        print(f"{serve.name} ({serve.side} toss, task {task})\n")
-        if robust is not None and robust.samples:
-            print(
-                f"checks and metrics of recorded toss {robust.samples[0] + 1} (the first of {len(robust.evaluations)} drawn; the verdict over all of them is at the end)\n"
-            )
-        print(status, checks, metrics, sep="\n\n")
-        if efforts is not None:
-            print("\n" + efforts.markdown())
-        if args.tosses > 1:
-            print(
-                f"\nover {args.tosses} recorded tosses: legal fraction {payload['legal_fraction']:.2f}, mean reward {payload['reward']:+.3f}, legal: {payload['legal']}"
-            )
-        if refused is not None:
-            print(f"\nnot exported to {args.export}: {refused}")
-        elif args.export:
-            print(f"\nexported to {args.export} as {payload['exported']['id']}{exported_note}")
-    return 0 if payload["legal"] and refused is None else 1
+        run.payload["exported"] = {
+            "library": str(args.export),
+            "id": entry.id,
+            "toss": "mean",
+            "legal": exported.legal,
+            "reward": exported.reward.total,
+        }
 
 
-def _cmd_optimize(args: argparse.Namespace) -> int:
-    import threading
-    import time
-    from dataclasses import replace
-    from pathlib import Path
+def _print_evaluation(args: argparse.Namespace, run: _EvaluateRun) -> None:
+    """Print the ``evaluate`` report for a person: checks, metrics, efforts, robust verdict, export."""
+    from studio.serve.evaluate import report_markdown
 
-    from studio.errors import InvalidInputError, StudioError
-    from studio.optimize.optimizer import optimize_serve
-    from studio.serve.evaluate import EvaluationContext, evaluate_serve
-    from studio.serve.params import LimitScale, load_serve
+    serve, robust, payload = run.serve, run.robust, run.payload
+    status, checks, metrics = report_markdown(run.evaluation)
+    print(f"{serve.name} ({serve.side} toss, task {run.task})\n")
+    if robust is not None and robust.samples:
+        print(
+            f"checks and metrics of recorded toss {robust.samples[0] + 1} (the first of {len(robust.evaluations)} drawn; the verdict over all of them is at the end)\n"
+        )
+    print(status, checks, metrics, sep="\n\n")
+    if run.efforts is not None:
+        print("\n" + run.efforts.markdown())
+    if args.tosses > 1:
+        print(
+            f"\nover {args.tosses} recorded tosses: legal fraction {payload['legal_fraction']:.2f}, mean reward {payload['reward']:+.3f}, legal: {payload['legal']}"
+        )
+    if run.refused is not None:
+        print(f"\nnot exported to {args.export}: {run.refused}")
+    elif args.export:
+        print(f"\nexported to {args.export} as {payload['exported']['id']}{run.exported_note}")
 
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    """Plan, simulate, check and score a serve file; optionally export it to a serve library."""
+    import json
+
+    from studio.serve.evaluate import EvaluationContext, effort_report
+
+    _check_evaluate_args(args)
     effort_limits = _effort_limits(args)
-    seeds = [load_serve(p) for p in args.seeds]
+    serve = _evaluated_serve(args)
+    context = EvaluationContext.default()
+    run = _run_evaluation(args, serve, context)
+    efforts = effort_report(run.evaluation.motion, context.robot)
+    run.efforts = efforts.with_limits(effort_limits) if efforts is not None else None
+    run.payload["efforts"] = run.efforts.to_json() if run.efforts is not None else None
+    if args.export:
+        _export_evaluation(args, run, context, effort_limits)
+    if args.json:
+        print(json.dumps(run.payload, indent=2))
+    else:
+        _print_evaluation(args, run)
+    return 0 if run.payload["legal"] and run.refused is None else 1
+
+
+def _optimize_limit_scale(args: argparse.Namespace, seeds: list[HandServe]) -> LimitScale | None:
+    """``--limit-scale``, else the seed serves' common scale (InvalidInputError if they differ), else None."""
+    from studio.errors import InvalidInputError
+    from studio.serve.params import LimitScale
+
     limit_scale = LimitScale.parse(args.limit_scale) if args.limit_scale is not None else None
     if limit_scale is None and not args.resume and seeds:  # the seeds' own scale
         scales = {s.limit_scale for s in seeds}
@@ -168,7 +221,18 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
                 f"the seed serves plan with different limit scales {[s.to_json() for s in scales]}: choose one with --limit-scale"
             )
         limit_scale = scales.pop()
-    run_dir = Path(args.run_dir or f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{args.side}-{args.task}")
+    return limit_scale
+
+
+def _run_optimize(
+    args: argparse.Namespace, run_dir: Path, seeds: list[HandServe], limit_scale: LimitScale | None
+) -> OptimizationResult:
+    """Run the HEBO optimization the options ask for, printing its progress on one line."""
+    import threading
+    import time
+
+    from studio.optimize.optimizer import optimize_serve
+
     start = time.perf_counter()
 
     def progress(done: int, total: int, best: float, _params: object) -> None:
@@ -178,24 +242,81 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
             flush=True,
         )
 
-    stop = threading.Event()
+    return optimize_serve(
+        side=args.side,
+        task=args.task,
+        run_dir=run_dir,
+        seeds=seeds,
+        iterations=args.iterations,
+        population=args.population,
+        tosses=args.tosses,
+        seed=args.seed,
+        workers=args.workers,
+        progress=progress,
+        stop=threading.Event(),
+        resume=args.resume,
+        overlap=False if args.sequential else None,
+        limit_scale=limit_scale,
+    )
+
+
+def _final_serve(args: argparse.Namespace, chosen: HandServe, run_dir: Path) -> HandServe:
+    """The chosen serve named and annotated, made robust with ``--robustify``, written to the run folder."""
+    from dataclasses import replace
+
+    from studio.serve.params import save_serve
+
+    best = replace(
+        chosen,
+        name=args.name or f"{args.task} {args.side} seed {args.seed}",
+        task=args.task,
+        notes=f"HEBO run {run_dir}, seed {args.seed}",
+    )
+    if args.robustify:
+        from studio.optimize.robust import robustify_chosen
+
+        print(f"robustify: {args.robustify} candidates around the chosen serve ...", flush=True)
+        rob = robustify_chosen(best, run_dir, evaluations=args.robustify, task=args.task)
+        print(rob.summary())
+        best = rob.serve
+    out = run_dir / "best_serve.json"
+    save_serve(out, best)
+    print(f"best serve written to {out}")
+    return best
+
+
+def _export_optimized(
+    args: argparse.Namespace, best: HandServe, run_dir: Path, effort_limits: dict[str, float]
+) -> None:
+    """Evaluate the final serve on the mean toss and add it to the ``--export`` library."""
+    from studio.library.store import ServeLibrary
+    from studio.serve.evaluate import EvaluationContext, evaluate_serve
+
+    context = EvaluationContext.default()
+    evaluation = evaluate_serve(best, context, task=args.task)
+    entry = ServeLibrary(args.export).add(
+        evaluation,
+        provenance={"kind": "hebo", "run": str(run_dir), "seed": args.seed},
+        task=args.task,
+        preparation=context.preparation(best.side),
+        effort_limits=effort_limits,
+    )
+    print(f"exported to {args.export} as {entry.id}")
+
+
+def _cmd_optimize(args: argparse.Namespace) -> int:
+    """Optimize one serve with HEBO; write the chosen serve and optionally export it to a library."""
+    import time
+
+    from studio.errors import StudioError
+    from studio.serve.params import load_serve
+
+    effort_limits = _effort_limits(args)
+    seeds = [load_serve(p) for p in args.seeds]
+    limit_scale = _optimize_limit_scale(args, seeds)
+    run_dir = Path(args.run_dir or f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{args.side}-{args.task}")
     try:
-        result = optimize_serve(
-            side=args.side,
-            task=args.task,
-            run_dir=run_dir,
-            seeds=seeds,
-            iterations=args.iterations,
-            population=args.population,
-            tosses=args.tosses,
-            seed=args.seed,
-            workers=args.workers,
-            progress=progress,
-            stop=stop,
-            resume=args.resume,
-            overlap=False if args.sequential else None,
-            limit_scale=limit_scale,
-        )
+        result = _run_optimize(args, run_dir, seeds, limit_scale)
     except KeyboardInterrupt:
         print(f"\ninterrupted: every evaluation so far is in {run_dir}; continue with --resume --run-dir {run_dir}")
         return 130
@@ -210,37 +331,9 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
     print(
         f"chosen serve: mean reward {s.mean_reward:+.3f} on {len(s.rewards)} fresh tosses, legal on {100 * s.legal_fraction:.0f} % ({'legal' if s.legal else 'not legal'})"
     )
-    best = replace(
-        result.best,
-        name=args.name or f"{args.task} {args.side} seed {args.seed}",
-        task=args.task,
-        notes=f"HEBO run {run_dir}, seed {args.seed}",
-    )
-    if args.robustify:
-        from studio.optimize.robust import robustify_chosen
-
-        print(f"robustify: {args.robustify} candidates around the chosen serve ...", flush=True)
-        rob = robustify_chosen(best, run_dir, evaluations=args.robustify, task=args.task)
-        print(rob.summary())
-        best = rob.serve
-    out = run_dir / "best_serve.json"
-    from studio.serve.params import save_serve
-
-    save_serve(out, best)
-    print(f"best serve written to {out}")
+    best = _final_serve(args, result.best, run_dir)
     if args.export:
-        from studio.library.store import ServeLibrary
-
-        context = EvaluationContext.default()
-        evaluation = evaluate_serve(best, context, task=args.task)
-        entry = ServeLibrary(args.export).add(
-            evaluation,
-            provenance={"kind": "hebo", "run": str(run_dir), "seed": args.seed},
-            task=args.task,
-            preparation=context.preparation(best.side),
-            effort_limits=effort_limits,
-        )
-        print(f"exported to {args.export} as {entry.id}")
+        _export_optimized(args, best, run_dir, effort_limits)
     return 0 if s.legal else 1
 
 
@@ -576,11 +669,8 @@ def _bounded(kind: type, low: float, high: float) -> Any:
     return convert
 
 
-def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
-    parser = argparse.ArgumentParser(prog="serve-studio", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
-    handlers: dict[str, Handler] = {}
-
+def _add_app_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], handlers: dict[str, Handler]) -> None:
+    """Add the ``app`` command and its handler."""
     p = sub.add_parser("app", help="start the serve design studio (viser, in the browser)")
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default: localhost only)")
     p.add_argument("--port", type=_bounded(int, 1, 65535), default=8080, help="port (default 8080)")
@@ -592,6 +682,11 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--library", default=None, help="serve library folder to export to (default: ./serve-library)")
     handlers["app"] = _cmd_app
 
+
+def _add_evaluate_parser(
+    sub: argparse._SubParsersAction[argparse.ArgumentParser], handlers: dict[str, Handler]
+) -> None:
+    """Add the ``evaluate`` command and its handler."""
     p = sub.add_parser("evaluate", help="plan, simulate, check and score a serve JSON file")
     p.add_argument("serve", help="hand-designed serve JSON file")
     p.add_argument("--task", default=None, help="reward task preset (default: the serve's task or topspin_velocity)")
@@ -625,6 +720,11 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--effort-limit", action="append", default=[], metavar="JOINT=VALUE", help=EFFORT_LIMIT_HELP)
     handlers["evaluate"] = _cmd_evaluate
 
+
+def _add_robustify_parser(
+    sub: argparse._SubParsersAction[argparse.ArgumentParser], handlers: dict[str, Handler]
+) -> None:
+    """Add the ``robustify`` command and its handler."""
     p = sub.add_parser(
         "robustify", help="search around a serve for one legal on more recorded tosses, keeping its spin"
     )
@@ -656,6 +756,11 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--resume", action="store_true", help="continue the search logged in --run-dir")
     handlers["robustify"] = _cmd_robustify
 
+
+def _add_optimize_parser(
+    sub: argparse._SubParsersAction[argparse.ArgumentParser], handlers: dict[str, Handler]
+) -> None:
+    """Add the ``optimize`` command and its handler."""
     p = sub.add_parser("optimize", help="optimize one serve with HEBO, seeded from hand-designed serves")
     p.add_argument("seeds", nargs="*", help="hand-designed serve JSON files observed before the first suggestion")
     p.add_argument("--side", choices=("right", "left"), default="right")
@@ -691,6 +796,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--robustify", type=_bounded(int, 0, 1_000_000), default=0, metavar="N", help=ROBUSTIFY_HELP)
     handlers["optimize"] = _cmd_optimize
 
+
+def _add_train_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], handlers: dict[str, Handler]) -> None:
+    """Add the ``train`` command and its handler."""
     p = sub.add_parser(
         "train", help="train COUNT serves for a task (one HEBO run each) into a library, print a Table II-like summary"
     )
@@ -725,6 +833,11 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     )
     handlers["train"] = _cmd_train
 
+
+def _add_dashboard_parser(
+    sub: argparse._SubParsersAction[argparse.ArgumentParser], handlers: dict[str, Handler]
+) -> None:
+    """Add the ``dashboard`` command and its handler."""
     p = sub.add_parser("dashboard", help="serve the Panel dashboard of a serve library")
     p.add_argument(
         "library_dir",
@@ -750,6 +863,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     )
     handlers["dashboard"] = _cmd_dashboard
 
+
+def _add_toss_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], handlers: dict[str, Handler]) -> None:
+    """Add the ``toss`` command and its handler."""
     p = sub.add_parser("toss", help="analyse toss recordings: lift time, rise, spread")
     p.add_argument("--side", choices=("right", "left"), default="right")
     p.add_argument("--csv", default=None, help="recordings CSV (toss_id,t,x,y,z); default: the shipped recordings")
@@ -771,6 +887,11 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     )
     handlers["toss"] = _cmd_toss
 
+
+def _add_robot_files_parser(
+    sub: argparse._SubParsersAction[argparse.ArgumentParser], handlers: dict[str, Handler]
+) -> None:
+    """Add the ``robot-files`` command and its handler."""
     p = sub.add_parser(
         "robot-files", help="write robots/serve_robot.urdf and .xml from robots/serve_robot.toml (--check: verify)"
     )
@@ -781,6 +902,11 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     p.add_argument("--out", type=Path, default=None, help="output folder (default: robots/)")
     handlers["robot-files"] = _cmd_robot_files
 
+
+def _add_calibrate_parser(
+    sub: argparse._SubParsersAction[argparse.ArgumentParser], handlers: dict[str, Handler]
+) -> None:
+    """Add the ``calibrate`` command and its handler."""
     p = sub.add_parser(
         "calibrate",
         help="refit the racket, flight and table models on real data and print one table: before, after (cross-validated), noise",
@@ -813,6 +939,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     )
     handlers["calibrate"] = _cmd_calibrate
 
+
+def _add_library_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], handlers: dict[str, Handler]) -> None:
+    """Add the ``library`` command and its handler."""
     p = sub.add_parser(
         "library", help="serve library: list, show, validate, select the next serve, record points, statistics, prune"
     )
@@ -868,6 +997,23 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
     q.add_argument("--dry-run", action="store_true", help="only report what would be pruned")
     q.set_defaults(library_handler=_library_prune)
     handlers["library"] = _cmd_library
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Handler]]:
+    """The ``serve-studio`` argument parser and the handler of each command."""
+    parser = argparse.ArgumentParser(prog="serve-studio", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    handlers: dict[str, Handler] = {}
+    _add_app_parser(sub, handlers)
+    _add_evaluate_parser(sub, handlers)
+    _add_robustify_parser(sub, handlers)
+    _add_optimize_parser(sub, handlers)
+    _add_train_parser(sub, handlers)
+    _add_dashboard_parser(sub, handlers)
+    _add_toss_parser(sub, handlers)
+    _add_robot_files_parser(sub, handlers)
+    _add_calibrate_parser(sub, handlers)
+    _add_library_parser(sub, handlers)
     return parser, handlers
 
 

@@ -234,6 +234,57 @@ class LibraryEntry:
         return out
 
 
+def _export_preparation(preparation: Any, motion: Any) -> Any:
+    """The preparation to export (the one given, else the motion's), its arrays checked to be (P, 8)."""
+    preparation = preparation if preparation is not None else getattr(motion, "preparation", None)
+    if preparation is not None:
+        pu, pq = np.asarray(preparation.u, dtype=float), np.asarray(preparation.q, dtype=float)
+        if pu.ndim != 2 or pu.shape[1:] != (8,) or pq.shape != pu.shape:
+            raise InvalidInputError(f"preparation arrays must be (P, 8), got {pu.shape} and {pq.shape}")
+    return preparation
+
+
+def _new_serve_id(name: str) -> str:
+    """A fresh entry id: the serve's name as a slug and 8 random hex digits."""
+    slug = re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-")[:40] or "serve"
+    return f"{slug}-{uuid.uuid4().hex[:8]}"
+
+
+def _arrays_npz(ev: Any, arr: Any) -> bytes:
+    """The entry's compressed NPZ: the exported arrays and the ball path on their clock."""
+    t_toss = arr.t_toss
+    ball_t = np.asarray(ev.ball.t) - float(np.asarray(ev.t)[0]) + t_toss if ev.ball is not None else np.zeros(0)
+    ball_p = np.asarray(ev.ball.p) if ev.ball is not None else np.zeros((0, 3))
+    buf = io.BytesIO()
+    np.savez_compressed(
+        buf,
+        t=arr.t,
+        u=arr.u,
+        q=arr.q,
+        ball_t=ball_t,
+        ball_p=ball_p,
+        t_toss=np.array(t_toss),
+        joint_names=np.array(load_spec().joint_names),
+    )
+    return buf.getvalue()
+
+
+def _evaluation_fields(ev: Any, task: str | None) -> dict[str, Any]:
+    """The index fields describing the evaluated serve: name, side, task, params, ball, verdict and reward."""
+    m = ev.metrics
+    return {
+        "name": ev.serve.name,
+        "side": ev.serve.side,
+        "task": task or ev.serve.task,
+        "params": ev.serve.to_json()["params"],
+        "net": m.net if m else None,
+        "second_bounce": m.second_bounce if m else None,
+        "legal": bool(ev.legal),
+        "reward": float(ev.reward.total),
+        "terms": ev.reward.as_dict(),
+    }
+
+
 class ServeLibrary:
     """A serve library folder: read, validate and add serves.
 
@@ -394,50 +445,22 @@ class ServeLibrary:
         from studio.serve.efforts import arrays_effort_report
 
         motion = getattr(ev, "motion", None)
-        preparation = preparation if preparation is not None else getattr(motion, "preparation", None)
-        if preparation is not None:
-            pu, pq = np.asarray(preparation.u, dtype=float), np.asarray(preparation.q, dtype=float)
-            if pu.ndim != 2 or pu.shape[1:] != (8,) or pq.shape != pu.shape:
-                raise InvalidInputError(f"preparation arrays must be (P, 8), got {pu.shape} and {pq.shape}")
+        preparation = _export_preparation(preparation, motion)
         robot = load_robot()  # its own pinocchio data: exports may run beside an evaluation thread
         arr = serve_arrays(ev.t, ev.u, ev.q, getattr(motion, "qd", None), robot.dynamics, preparation=preparation)
         efforts = arrays_effort_report(robot, arr).with_limits(effort_limits or {})
         efforts.require_within()
-        t, u, q, t_toss = arr.t, arr.u, arr.q, arr.t_toss
-        slug = re.sub(r"[^a-z0-9]+", "-", ev.serve.name.lower()).strip("-")[:40] or "serve"
-        sid = f"{slug}-{uuid.uuid4().hex[:8]}"
-        ball_t = np.asarray(ev.ball.t) - float(np.asarray(ev.t)[0]) + t_toss if ev.ball is not None else np.zeros(0)
-        ball_p = np.asarray(ev.ball.p) if ev.ball is not None else np.zeros((0, 3))
-        buf = io.BytesIO()
-        np.savez_compressed(
-            buf,
-            t=t,
-            u=u,
-            q=q,
-            ball_t=ball_t,
-            ball_p=ball_p,
-            t_toss=np.array(t_toss),
-            joint_names=np.array(load_spec().joint_names),
-        )
-        m = ev.metrics
-        serve_json = ev.serve.to_json()
+        sid = _new_serve_id(ev.serve.name)
+        npz = _arrays_npz(ev, arr)
         entry = {
             "id": sid,
-            "name": ev.serve.name,
-            "side": ev.serve.side,
-            "task": task or ev.serve.task,
-            "params": serve_json["params"],
-            "net": m.net if m else None,
-            "second_bounce": m.second_bounce if m else None,
-            "legal": bool(ev.legal),
-            "reward": float(ev.reward.total),
-            "terms": ev.reward.as_dict(),
+            **_evaluation_fields(ev, task),
             "provenance": provenance or {"kind": "hand-designed"},
             "robot": {**robot_identity(ev.serve.limit_scale), "efforts": efforts.to_json()},
             "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "usage": {"used": 0, "won": 0, "lost": 0, "aces": 0},
             "arrays": f"{sid}.npz",
-            "t_toss": t_toss,
+            "t_toss": arr.t_toss,
             "settle": {"samples": arr.settle_samples, "position": SETTLE.position, "velocity": SETTLE.velocity},
         }
         cup = getattr(ev, "cup_hold", None)
@@ -445,7 +468,7 @@ class ServeLibrary:
             entry["cup_hold"] = cup.to_json()  # checked on this preparation, on the arrays' clock
         entry = json.loads(json.dumps(entry))  # plain JSON values, validated as they will be read
         self._validated([entry])
-        return self._commit(entry, buf.getvalue())
+        return self._commit(entry, npz)
 
     def _commit(self, entry: dict[str, Any], npz: bytes) -> LibraryEntry:
         """Under the library lock: re-read and validate the index, write the entry's NPZ,

@@ -36,14 +36,16 @@ import threading
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
 from studio.errors import DataFileError, InvalidInputError
-from studio.storage.jsonlog import append_jsonl, read_jsonl
 from studio.serve.params import GENE_NAMES, GenomeBounds, HandServe, ServeParams
+from studio.storage.jsonlog import append_jsonl, read_jsonl
+
+T = TypeVar("T")
 
 ROBUST_SCHEMA = "serve-studio/robustify-run@1"
 """Schema tag of ``robustify.json``."""
@@ -132,8 +134,16 @@ class SpinKeep:
     def describe(self) -> str:
         if not self.components:
             return "no spin to keep"
-        names = {("topspin", 1.0): "topspin", ("topspin", -1.0): "backspin", ("sidespin", 1.0): "sidespin (+)", ("sidespin", -1.0): "sidespin (-)"}
-        return " and ".join(f"{names[(c, sign)]} >= {floor:.0f}" for c, sign, floor in self.components) + " rad/s at the net"
+        names = {
+            ("topspin", 1.0): "topspin",
+            ("topspin", -1.0): "backspin",
+            ("sidespin", 1.0): "sidespin (+)",
+            ("sidespin", -1.0): "sidespin (-)",
+        }
+        return (
+            " and ".join(f"{names[(c, sign)]} >= {floor:.0f}" for c, sign, floor in self.components)
+            + " rad/s at the net"
+        )
 
 
 def spin_keep(start: RobustScore, keep: float) -> SpinKeep:
@@ -200,6 +210,165 @@ def _log_record(d: Any) -> dict[str, Any]:
     return d
 
 
+def _check_settings(keep_spin: float, sigma: float, evaluations: int, population: int, seed: int) -> None:
+    """Raise InvalidInputError naming the first robustify setting out of range."""
+    for name, value, ok in (
+        ("keep_spin", keep_spin, isinstance(keep_spin, (int, float)) and 0.0 <= keep_spin <= 1.0),
+        ("sigma", sigma, isinstance(sigma, (int, float)) and 0.0 < sigma <= 0.5),
+        ("evaluations", evaluations, isinstance(evaluations, int) and evaluations >= 1),
+        ("population", population, isinstance(population, int) and population >= 4),
+        ("seed", seed, isinstance(seed, int) and 0 <= seed < 2**31 - 1),
+    ):
+        if isinstance(value, bool) or not ok:
+            raise InvalidInputError(
+                f"robustify: {name} out of range, got {value!r} (keep_spin in [0, 1], sigma in (0, 0.5], "
+                "whole numbers evaluations >= 1, population >= 4, 0 <= seed < 2**31 - 1)"
+            )
+
+
+def _model_scorer(context: Any, task: str) -> tuple[ScoreFn, Any]:
+    """:func:`robust_score` on ``context`` (default: the shipped models) and that context;
+    an unknown task fails first."""
+    from studio.serve.reward import task_weights
+
+    task_weights(task)  # an unknown task fails before anything is loaded or written
+    if context is None:
+        from studio.serve.evaluate import EvaluationContext
+
+        context = EvaluationContext.default()
+    ctx = context
+
+    def score(s: HandServe) -> RobustScore:
+        return robust_score(s, ctx, task=task)
+
+    return score, context
+
+
+def _default_bounds(serve: HandServe, context: Any) -> GenomeBounds:
+    """The optimizer's genome bounds for the serve's toss (the context's, else the shipped one)."""
+    from studio.optimize.optimizer import bounds_for_toss
+
+    if context is None:
+        from studio.toss.defaults import load_default_toss_model
+
+        return bounds_for_toss(load_default_toss_model(serve.side))
+    return bounds_for_toss(context.toss_model(serve.side))
+
+
+def _open_run(run_dir: str | Path, meta: dict[str, Any], resume: bool) -> tuple[list[dict[str, Any]], Path]:
+    """Prepare the run folder: check a resumed search's settings, read its log, write the settings."""
+    folder = Path(run_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    log_path = folder / LOG_NAME
+    meta_path = folder / META_NAME
+    log: list[dict[str, Any]] = []
+    if resume and meta_path.exists():
+        _check_meta(meta_path, meta)
+        log = read_jsonl(log_path, _log_record)
+    elif log_path.exists() and log_path.stat().st_size > 0:
+        raise InvalidInputError(f"{log_path} already holds a search: pass resume=True or use another folder")
+    meta_path.write_text(json.dumps(meta, indent=2), encoding="utf-8")
+    return log, log_path
+
+
+def _check_meta(meta_path: Path, meta: dict[str, Any]) -> None:
+    """Raise DataFileError when the logged search's settings differ from this call's."""
+    try:
+        old = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise DataFileError(meta_path, f"not readable JSON ({exc})") from None
+    for key, value in json.loads(json.dumps(meta)).items():
+        if not isinstance(old, dict) or old.get(key) != value:
+            raise DataFileError(
+                meta_path,
+                f"field {key!r}: the logged search has {old.get(key) if isinstance(old, dict) else old!r}, this call {value!r}",
+            )
+
+
+def _keeping_global_rng(call: Callable[[], T]) -> T:
+    """``call()`` with numpy's global random state restored afterwards (cma touches it)."""
+    saved = np.random.get_state()
+    try:
+        return call()
+    finally:
+        np.random.set_state(saved)
+
+
+def _new_strategy(z0: npt.NDArray[np.float64], sigma: float, population: int, seed: int) -> Any:
+    """A CMA-ES on [0, 1]^n started at ``z0`` that draws from its own seeded generator."""
+    import cma
+
+    # CMA-ES draws from its own generator (cma would reseed and use numpy's global one);
+    # numpy's global state is restored around every call into cma all the same
+    rng = np.random.default_rng(seed)
+    options = {"popsize": population, "seed": seed + 1, "bounds": [0.0, 1.0], "verbose": -9, "randn": lambda *shape: rng.standard_normal(shape)}  # fmt: skip
+    return _keeping_global_rng(lambda: cma.CMAEvolutionStrategy(z0, sigma, options))
+
+
+@dataclass
+class _Search:
+    """A running robustness search: what it scores with, its log, and the best candidate so far."""
+
+    serve: HandServe
+    """The starting serve."""
+    bounds: GenomeBounds
+    """Genome bounds (candidates are normalized genomes in [0, 1])."""
+    score: ScoreFn
+    """Scores a candidate."""
+    keep: SpinKeep
+    """The spin constraint."""
+    log: list[dict[str, Any]]
+    """Logged candidates to replay (resume)."""
+    log_path: Path | None
+    """Where new candidates are logged, if anywhere."""
+    best_serve: HandServe
+    """Best candidate so far (the start until one beats it)."""
+    best_score: RobustScore
+    """Its score."""
+    best_obj: float
+    """Its objective."""
+    done: int = 0
+    """Candidates scored or replayed."""
+
+    def candidate(self, z: npt.NDArray[np.float64]) -> HandServe:
+        """The serve of normalized genome ``z``."""
+        low, high = self.bounds.lows_highs()
+        return replace(self.serve, params=ServeParams.from_vector(low + z * (high - low)))
+
+    def replayed(self, z: npt.NDArray[np.float64]) -> tuple[float, RobustScore]:
+        """The logged objective and score of the next candidate (DataFileError if the log differs)."""
+        rec = self.log[self.done]
+        if rec.get("index") != self.done or not np.allclose(rec["genome"], z, rtol=0, atol=1e-9):
+            raise DataFileError(
+                self.log_path,
+                f"line {self.done + 1}: the logged candidate differs from the replayed one (not this search's log)",
+            )
+        return rec["objective"], rec["score"]
+
+    def scored(self, z: npt.NDArray[np.float64]) -> tuple[float, RobustScore]:
+        """Score the next candidate and log it."""
+        sc = self.score(self.candidate(z))
+        value = objective(sc, self.keep)
+        if self.log_path is not None:
+            append_jsonl(
+                self.log_path,
+                {"index": self.done, "genome": [float(v) for v in z], "objective": value, "score": asdict(sc)},
+            )
+        return value, sc
+
+    def generation(self, es: Any) -> None:
+        """Ask CMA-ES for a generation, score (or replay) it, keep the best, tell the values."""
+        Z = _keeping_global_rng(lambda: [np.clip(np.asarray(z, dtype=float), 0.0, 1.0) for z in es.ask()])
+        values = []
+        for z in Z:
+            value, sc = self.replayed(z) if self.done < len(self.log) else self.scored(z)
+            values.append(value)
+            if self.keep.deficit(sc) == 0 and value < self.best_obj:
+                self.best_serve, self.best_score, self.best_obj = self.candidate(z), sc, value
+            self.done += 1
+        _keeping_global_rng(lambda: es.tell([list(z) for z in Z], values))
+
+
 def robustify_serve(
     serve: HandServe,
     *,
@@ -243,46 +412,13 @@ def robustify_serve(
         InvalidInputError: a setting out of range (named); DataFileError: a log that does
             not belong to this search.
     """
-    import cma
-
-    for name, value, ok in (
-        ("keep_spin", keep_spin, isinstance(keep_spin, (int, float)) and 0.0 <= keep_spin <= 1.0),
-        ("sigma", sigma, isinstance(sigma, (int, float)) and 0.0 < sigma <= 0.5),
-        ("evaluations", evaluations, isinstance(evaluations, int) and evaluations >= 1),
-        ("population", population, isinstance(population, int) and population >= 4),
-        ("seed", seed, isinstance(seed, int) and 0 <= seed < 2**31 - 1),
-    ):
-        if isinstance(value, bool) or not ok:
-            raise InvalidInputError(
-                f"robustify: {name} out of range, got {value!r} (keep_spin in [0, 1], sigma in (0, 0.5], "
-                "whole numbers evaluations >= 1, population >= 4, 0 <= seed < 2**31 - 1)"
-            )
+    _check_settings(keep_spin, sigma, evaluations, population, seed)
     if resume and run_dir is None:
         raise InvalidInputError("robustify: resume needs run_dir")
     task = task or serve.task or "topspin_velocity"
     if score is None:
-        from studio.serve.reward import task_weights
-
-        task_weights(task)  # an unknown task fails before anything is loaded or written
-        if context is None:
-            from studio.serve.evaluate import EvaluationContext
-
-            context = EvaluationContext.default()
-        ctx = context
-
-        def score(s: HandServe) -> RobustScore:
-            return robust_score(s, ctx, task=task)
-
-    if bounds is None:
-        from studio.optimize.optimizer import bounds_for_toss
-
-        if context is None:
-            from studio.toss.defaults import load_default_toss_model
-
-            bounds = bounds_for_toss(load_default_toss_model(serve.side))
-        else:
-            bounds = bounds_for_toss(context.toss_model(serve.side))
-
+        score, context = _model_scorer(context, task)
+    bounds = bounds if bounds is not None else _default_bounds(serve, context)
     start_score = score(serve)
     keep = spin_keep(start_score, keep_spin)
     meta = {
@@ -291,79 +427,27 @@ def robustify_serve(
         # the models' verdict on the start: a resume on other tosses, robot or physics would mix objectives
         "start": asdict(start_score),
     }  # fmt: skip
-    log: list[dict[str, Any]] = []
-    log_path: Path | None = None
-    if run_dir is not None:
-        folder = Path(run_dir)
-        folder.mkdir(parents=True, exist_ok=True)
-        log_path = folder / LOG_NAME
-        meta_path = folder / META_NAME
-        if resume and meta_path.exists():
-            try:
-                old = json.loads(meta_path.read_text(encoding="utf-8"))
-            except (OSError, ValueError) as exc:
-                raise DataFileError(meta_path, f"not readable JSON ({exc})") from None
-            for key, value in json.loads(json.dumps(meta)).items():
-                if not isinstance(old, dict) or old.get(key) != value:
-                    raise DataFileError(meta_path, f"field {key!r}: the logged search has {old.get(key) if isinstance(old, dict) else old!r}, this call {value!r}")
-            log = read_jsonl(log_path, _log_record)
-        elif log_path.exists() and log_path.stat().st_size > 0:
-            raise InvalidInputError(f"{log_path} already holds a search: pass resume=True or use another folder")
-        meta_path.write_text(json.dumps(meta, indent=2), encoding="utf-8")
-
-    low, high = bounds.lows_highs()
+    log, log_path = _open_run(run_dir, meta, resume) if run_dir is not None else ([], None)
     z0 = np.clip(serve.params.normalize(bounds), 0.0, 1.0)  # a start outside the bounds: the nearest genome
-    # CMA-ES draws from its own generator (cma would reseed and use numpy's global one);
-    # numpy's global state is restored around every call into cma all the same
-    rng = np.random.default_rng(seed)
-    saved = np.random.get_state()
-    try:
-        es = cma.CMAEvolutionStrategy(
-            z0, sigma, {"popsize": population, "seed": seed + 1, "bounds": [0.0, 1.0], "verbose": -9, "randn": lambda *shape: rng.standard_normal(shape)}
-        )  # fmt: skip
-    finally:
-        np.random.set_state(saved)
+    es = _new_strategy(z0, sigma, population, seed)
     budget = -(-evaluations // population) * population  # whole generations
-    best_serve, best_score, best_obj = serve, start_score, objective(start_score, keep)
-    done = 0
+    search = _Search(serve, bounds, score, keep, log, log_path, serve, start_score, objective(start_score, keep))
     stopped = False
-
-    def candidate(z: npt.NDArray[np.float64]) -> HandServe:
-        return replace(serve, params=ServeParams.from_vector(low + z * (high - low)))
-
-    while done < evaluations:
+    while search.done < evaluations:
         if stop is not None and stop.is_set():
             stopped = True
             break
-        saved = np.random.get_state()
-        try:
-            Z = [np.clip(np.asarray(z, dtype=float), 0.0, 1.0) for z in es.ask()]
-        finally:
-            np.random.set_state(saved)
-        values = []
-        for z in Z:
-            if done < len(log):  # replay
-                rec = log[done]
-                if rec.get("index") != done or not np.allclose(rec["genome"], z, rtol=0, atol=1e-9):
-                    raise DataFileError(log_path, f"line {done + 1}: the logged candidate differs from the replayed one (not this search's log)")
-                values.append(rec["objective"])
-                sc = rec["score"]
-            else:
-                sc = score(candidate(z))
-                values.append(objective(sc, keep))
-                if log_path is not None:
-                    append_jsonl(log_path, {"index": done, "genome": [float(v) for v in z], "objective": values[-1], "score": asdict(sc)})
-            if keep.deficit(sc) == 0 and values[-1] < best_obj:
-                best_serve, best_score, best_obj = candidate(z), sc, values[-1]
-            done += 1
-        saved = np.random.get_state()
-        try:
-            es.tell([list(z) for z in Z], values)
-        finally:
-            np.random.set_state(saved)
+        search.generation(es)
         if progress is not None:
-            progress(done, budget, best_score)
+            progress(search.done, budget, search.best_score)
+    return _result(serve, search, start_score, sigma, stopped, run_dir)
 
+
+def _result(
+    serve: HandServe, search: _Search, start_score: RobustScore, sigma: float, stopped: bool, run_dir: str | Path | None
+) -> RobustifyResult:
+    """The search's outcome; an improved serve's notes say how it was found."""
+    best_serve, best_score, done, keep = search.best_serve, search.best_score, search.done, search.keep
     improved = best_serve is not serve
     if improved:
         note = (
@@ -371,16 +455,29 @@ def robustify_serve(
             f"legal on {best_score.legal}/{best_score.tosses} recorded tosses (was {start_score.legal}/{start_score.tosses})."
         )
         best_serve = replace(best_serve, notes=(serve.notes + " " + note).strip())
-    return RobustifyResult(best_serve, start_score, best_score, keep, done, stopped, Path(run_dir) if run_dir is not None else None, improved)
+    return RobustifyResult(
+        best_serve,
+        start_score,
+        best_score,
+        keep,
+        done,
+        stopped,
+        Path(run_dir) if run_dir is not None else None,
+        improved,
+    )
 
 
 RUN_SUBDIR = "robustify"
 """Sub-folder of an optimization run that logs the robustness search of its chosen serve."""
 
 
-def robustify_chosen(serve: HandServe, run_dir: str | Path, *, evaluations: int, task: str, context: Any = None) -> RobustifyResult:
+def robustify_chosen(
+    serve: HandServe, run_dir: str | Path, *, evaluations: int, task: str, context: Any = None
+) -> RobustifyResult:
     """:func:`robustify_serve` on an optimization run's chosen serve, logged in
     ``run_dir/robustify/`` and resumed from there when that search was started before
     (``optimize``/``train --robustify``)."""
     folder = Path(run_dir) / RUN_SUBDIR
-    return robustify_serve(serve, context=context, task=task, evaluations=evaluations, run_dir=folder, resume=(folder / META_NAME).exists())
+    return robustify_serve(
+        serve, context=context, task=task, evaluations=evaluations, run_dir=folder, resume=(folder / META_NAME).exists()
+    )

@@ -564,49 +564,36 @@ def _parse_racket(rr: _Reader, rc: _Reader) -> RacketSpec:
     return spec
 
 
-def parse_spec(data: Mapping[str, Any], *, path: Path | None = None) -> RobotSpec:
-    """Validate a parsed TOML document and return the :class:`RobotSpec`.
-
-    Raises:
-        RobotModelError: naming the offending key (and ``path`` when given).
-    """
-    top = _Reader(data, "", path)
-    top.check_unknown(_TOP_KEYS)
-    version = top.raw("schema_version")
-    if version != SCHEMA_VERSION:
-        raise top.err("schema_version", f"must be {SCHEMA_VERSION}, got {version!r}")
-    name = top.string("name")
-    base = top.sub("base")
-    base.check_unknown({"xyz", "rpy"})
-    col = top.sub("colors")
+def _parse_colors(col: _Reader) -> dict[str, tuple[float, float, float, float]]:
+    """The ``[colors]`` table: name -> RGBA, components in [0, 1]."""
     colors: dict[str, tuple[float, float, float, float]] = {}
     for cname in col.table:
         rgba = col.vector(cname, 4)
         if not all(0.0 <= c <= 1.0 for c in rgba):
             raise col.err(cname, f"components must be in [0, 1], got {rgba}")
         colors[cname] = (rgba[0], rgba[1], rgba[2], rgba[3])
+    return colors
 
-    links: list[LinkSpec] = []
-    for lr in top.array_of_tables("links"):
-        lr.check_unknown(_LINK_KEYS)
-        mass = lr.number("mass", nonnegative=True)
-        geoms = tuple(_parse_geom(g, colors) for g in lr.array_of_tables("geoms", []))
-        links.append(
-            LinkSpec(
-                name=lr.string("name"),
-                mass=mass,
-                com=_v3(lr.vector("com", 3, [0.0, 0.0, 0.0])),
-                inertia=_v3(lr.vector("inertia", 3, [0.0, 0.0, 0.0], nonnegative=True)),
-                geoms=geoms,
-            )
-        )
-        if mass > 0 and min(links[-1].inertia) <= 0:
-            raise lr.err("inertia", "must be > 0 for a link with mass")
-    joints = [_parse_joint(jr) for jr in top.array_of_tables("joints")]
-    racket = _parse_racket(top.sub("racket"), top.sub("cup"))
 
-    # Structure: a single chain / tree rooted at gantry_base, names unique.
-    link_names = [lk.name for lk in links]
+def _parse_link(lr: _Reader, colors: Mapping[str, tuple[float, float, float, float]]) -> LinkSpec:
+    """One ``[[links]]`` entry with its geoms (a link with mass needs positive inertia)."""
+    lr.check_unknown(_LINK_KEYS)
+    mass = lr.number("mass", nonnegative=True)
+    geoms = tuple(_parse_geom(g, colors) for g in lr.array_of_tables("geoms", []))
+    link = LinkSpec(
+        name=lr.string("name"),
+        mass=mass,
+        com=_v3(lr.vector("com", 3, [0.0, 0.0, 0.0])),
+        inertia=_v3(lr.vector("inertia", 3, [0.0, 0.0, 0.0], nonnegative=True)),
+        geoms=geoms,
+    )
+    if mass > 0 and min(link.inertia) <= 0:
+        raise lr.err("inertia", "must be > 0 for a link with mass")
+    return link
+
+
+def _check_tree(link_names: list[str], joints: list[JointSpec], path: Path | None) -> None:
+    """A single tree rooted at gantry_base: names unique and not reserved, one parent per link."""
     reserved = {"world", RACKET_FRAME, BALL_CUP_FRAME}
     for k, lname in enumerate(link_names):
         if lname in reserved:
@@ -627,17 +614,18 @@ def parse_spec(data: Mapping[str, Any], *, path: Path | None = None) -> RobotSpe
     roots = [n for n in link_names if n not in children]
     if roots != ["gantry_base"]:
         raise _err("links", f"exactly one root link 'gantry_base' expected, found roots {roots}", path)
-    if racket.parent not in link_names:
-        raise _err("racket.parent", f"unknown link {racket.parent!r}", path)
-    actuated = [j for j in joints if j.actuated]
-    if len(actuated) != 8:
-        raise _err("joints", f"the serve robot needs 8 actuated joints, found {len(actuated)}", path)
+
+
+def _check_geom_names(links: list[LinkSpec], racket: RacketSpec, path: Path | None) -> None:
+    """Every geom name, the generated racket geoms' included, is unique."""
     geom_names = [g.name for lk in links for g in lk.geoms] + list(_racket_geom_names(racket))
     for gname in geom_names:
         if geom_names.count(gname) > 1:
             raise _err("links", f"duplicate geom name {gname!r}", path)
 
-    poses = top.sub("poses")
+
+def _parse_poses(poses: _Reader, actuated: list[JointSpec]) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """(q_rest, q_flat) of the ``[poses]`` table, each within the actuated joints' limits."""
     poses.check_unknown({"q_rest", "q_flat"})
     q_rest = poses.vector("q_rest", 8)
     q_flat = poses.vector("q_flat", 8)
@@ -645,7 +633,36 @@ def parse_spec(data: Mapping[str, Any], *, path: Path | None = None) -> RobotSpe
         for k, (j, v) in enumerate(zip(actuated, q, strict=True)):
             if not j.lower <= v <= j.upper:
                 raise poses.err(f"{pname}[{k}]", f"joint {j.name!r}: {v} outside [{j.lower}, {j.upper}]")
+    return q_rest, q_flat
 
+
+def parse_spec(data: Mapping[str, Any], *, path: Path | None = None) -> RobotSpec:
+    """Validate a parsed TOML document and return the :class:`RobotSpec`.
+
+    Raises:
+        RobotModelError: naming the offending key (and ``path`` when given).
+    """
+    top = _Reader(data, "", path)
+    top.check_unknown(_TOP_KEYS)
+    version = top.raw("schema_version")
+    if version != SCHEMA_VERSION:
+        raise top.err("schema_version", f"must be {SCHEMA_VERSION}, got {version!r}")
+    name = top.string("name")
+    base = top.sub("base")
+    base.check_unknown({"xyz", "rpy"})
+    colors = _parse_colors(top.sub("colors"))
+    links = [_parse_link(lr, colors) for lr in top.array_of_tables("links")]
+    joints = [_parse_joint(jr) for jr in top.array_of_tables("joints")]
+    racket = _parse_racket(top.sub("racket"), top.sub("cup"))
+    # Structure: a single chain / tree rooted at gantry_base, names unique.
+    _check_tree([lk.name for lk in links], joints, path)
+    if racket.parent not in [lk.name for lk in links]:
+        raise _err("racket.parent", f"unknown link {racket.parent!r}", path)
+    actuated = [j for j in joints if j.actuated]
+    if len(actuated) != 8:
+        raise _err("joints", f"the serve robot needs 8 actuated joints, found {len(actuated)}", path)
+    _check_geom_names(links, racket, path)
+    q_rest, q_flat = _parse_poses(top.sub("poses"), actuated)
     src = top.sub("sources")
     sources = {k: src.string(k) for k in src.table}
     if not sources:
@@ -702,6 +719,93 @@ def _racket_geom_names(r: RacketSpec) -> tuple[str, ...]:
     )
 
 
+def _racket_geom(
+    name: str,
+    kind: GeomKind,
+    use: GeomUse,
+    xyz: tuple[float, float, float],
+    rpy: tuple[float, float, float],
+    *,
+    size: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    radius: float = 0.0,
+    length: float = 0.0,
+    color: str,
+) -> GeomSpec:
+    """One racket primitive in one of the racket's named colours."""
+    return GeomSpec(name, kind, use, xyz, rpy, size, radius, length, _RACKET_COLORS[color])
+
+
+def _handle_geoms(r: RacketSpec) -> list[GeomSpec]:
+    """The flange adapter (when it has a length) and the handle box."""
+    handle_y = -0.5 * r.blade_length - 0.5 * r.handle_length
+    adapter_y = -0.5 * r.blade_length - r.handle_length - 0.5 * r.adapter_length
+    out: list[GeomSpec] = []
+    if r.adapter_length > 0:
+        out.append(
+            _racket_geom(
+                "racket_adapter",
+                "cylinder",
+                "both",
+                (0.0, adapter_y, 0.0),
+                (0.5 * math.pi, 0.0, 0.0),
+                radius=r.adapter_radius,
+                length=r.adapter_length,
+                color="flange",
+            )
+        )
+    size = (r.handle_width, r.handle_length, r.handle_thickness)
+    out.append(_racket_geom("handle", "box", "both", (0.0, handle_y, 0.0), (0.0, 0.0, 0.0), size=size, color="wood"))
+    return out
+
+
+def _blade_geoms(r: RacketSpec) -> list[GeomSpec]:
+    """The blade's collision cylinder and its two visual faces (red A at z > 0, black B)."""
+    blade_r = 0.25 * (r.blade_width + r.blade_length)
+    h = r.half_thickness
+    origin = (0.0, 0.0, 0.0)
+    return [
+        _racket_geom(RACKET_BLADE_GEOM, "cylinder", "collision", origin, origin, radius=blade_r, length=2 * h, color="red"),
+        _racket_geom("face_a", "cylinder", "visual", (0.0, 0.0, 0.5 * h), origin, radius=blade_r, length=h, color="red"),
+        _racket_geom("face_b", "cylinder", "visual", (0.0, 0.0, -0.5 * h), origin, radius=blade_r, length=h, color="black"),
+    ]  # fmt: skip
+
+
+def _cup_geoms(r: RacketSpec) -> list[GeomSpec]:
+    """The cup plate on face A of the handle and its ring of ``wall_count`` wall blocks."""
+    z_plate = 0.5 * r.handle_thickness + 0.5 * r.cup_plate_thickness
+    out = [
+        _racket_geom(
+            "cup_plate",
+            "cylinder",
+            "both",
+            (0.0, r.cup_y, z_plate),
+            (0.0, 0.0, 0.0),
+            radius=r.cup_plate_radius,
+            length=r.cup_plate_thickness,
+            color="cup",
+        )
+    ]
+    r_in = r.cup_rim_radius
+    r_mid = r_in + 0.5 * r.cup_wall_thickness
+    n = r.cup_wall_count
+    chord = 2.0 * (r_in + r.cup_wall_thickness) * math.tan(math.pi / n)
+    z_wall = 0.5 * r.handle_thickness + r.cup_plate_thickness + 0.5 * r.cup_wall_height
+    for k in range(n):
+        a = 2.0 * math.pi * k / n
+        out.append(
+            _racket_geom(
+                f"cup_wall_{k}",
+                "box",
+                "both",
+                (r_mid * math.cos(a), r.cup_y + r_mid * math.sin(a), z_wall),
+                (0.0, 0.0, a),
+                size=(r.cup_wall_thickness, chord, r.cup_wall_height),
+                color="cup",
+            )
+        )
+    return out
+
+
 def racket_geoms(r: RacketSpec) -> tuple[GeomSpec, ...]:
     """Primitives of the ``racket`` link, in the racket frame.
 
@@ -710,87 +814,7 @@ def racket_geoms(r: RacketSpec) -> tuple[GeomSpec, ...]:
     Cup: a plate on face A of the handle and a ring of ``wall_count`` blocks whose inner
     faces are ``rim_radius`` from the cup axis; the ball rests on their inner top edges.
     """
-    half_pi = 0.5 * math.pi
-    blade_r = 0.25 * (r.blade_width + r.blade_length)
-    h = r.half_thickness
-    handle_y = -0.5 * r.blade_length - 0.5 * r.handle_length
-    adapter_y = -0.5 * r.blade_length - r.handle_length - 0.5 * r.adapter_length
-    out: list[GeomSpec] = []
-
-    def add(
-        name: str,
-        kind: GeomKind,
-        use: GeomUse,
-        xyz: tuple[float, float, float],
-        rpy: tuple[float, float, float],
-        *,
-        size: tuple[float, float, float] = (0.0, 0.0, 0.0),
-        radius: float = 0.0,
-        length: float = 0.0,
-        color: str,
-    ) -> None:
-        out.append(GeomSpec(name, kind, use, xyz, rpy, size, radius, length, _RACKET_COLORS[color]))
-
-    if r.adapter_length > 0:
-        add(
-            "racket_adapter",
-            "cylinder",
-            "both",
-            (0.0, adapter_y, 0.0),
-            (half_pi, 0.0, 0.0),
-            radius=r.adapter_radius,
-            length=r.adapter_length,
-            color="flange",
-        )
-    add(
-        "handle",
-        "box",
-        "both",
-        (0.0, handle_y, 0.0),
-        (0.0, 0.0, 0.0),
-        size=(r.handle_width, r.handle_length, r.handle_thickness),
-        color="wood",
-    )
-    add(
-        RACKET_BLADE_GEOM,
-        "cylinder",
-        "collision",
-        (0.0, 0.0, 0.0),
-        (0.0, 0.0, 0.0),
-        radius=blade_r,
-        length=2 * h,
-        color="red",
-    )
-    add("face_a", "cylinder", "visual", (0.0, 0.0, 0.5 * h), (0.0, 0.0, 0.0), radius=blade_r, length=h, color="red")
-    add("face_b", "cylinder", "visual", (0.0, 0.0, -0.5 * h), (0.0, 0.0, 0.0), radius=blade_r, length=h, color="black")
-    z_plate = 0.5 * r.handle_thickness + 0.5 * r.cup_plate_thickness
-    add(
-        "cup_plate",
-        "cylinder",
-        "both",
-        (0.0, r.cup_y, z_plate),
-        (0.0, 0.0, 0.0),
-        radius=r.cup_plate_radius,
-        length=r.cup_plate_thickness,
-        color="cup",
-    )
-    r_in = r.cup_rim_radius
-    r_mid = r_in + 0.5 * r.cup_wall_thickness
-    n = r.cup_wall_count
-    chord = 2.0 * (r_in + r.cup_wall_thickness) * math.tan(math.pi / n)
-    z_wall = 0.5 * r.handle_thickness + r.cup_plate_thickness + 0.5 * r.cup_wall_height
-    for k in range(n):
-        a = 2.0 * math.pi * k / n
-        add(
-            f"cup_wall_{k}",
-            "box",
-            "both",
-            (r_mid * math.cos(a), r.cup_y + r_mid * math.sin(a), z_wall),
-            (0.0, 0.0, a),
-            size=(r.cup_wall_thickness, chord, r.cup_wall_height),
-            color="cup",
-        )
-    return tuple(out)
+    return tuple(_handle_geoms(r) + _blade_geoms(r) + _cup_geoms(r))
 
 
 RACKET_GEOMS: Final[tuple[str, ...]] = ("racket_adapter", "handle", RACKET_BLADE_GEOM, "cup_plate")

@@ -24,7 +24,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -503,9 +503,61 @@ def _failure(motion: ServeMotion, toss: TossModel, timings: dict[str, float]) ->
 
 
 def _lap(timings: dict[str, float], name: str, since: float) -> float:
+    """Add the time since ``since`` to ``timings[name]`` [ms]; returns now."""
     now = time.perf_counter()
     timings[name] = timings.get(name, 0.0) + 1000 * (now - since)
     return now
+
+
+def _strike_goal(serve: HandServe, target: RacketTarget, t_switch: float, u_rest: Any) -> Any:
+    """The planner's :class:`studio.planning.strike.StrikeTarget`, timed from the switch."""
+    from studio.planning.strike import StrikeTarget
+
+    p = serve.params
+    return StrikeTarget(
+        tau=p.tau - t_switch,
+        position=np.asarray(target.position),
+        normal=np.asarray(target.normal),
+        velocity=np.asarray(target.velocity),
+        tau_f=p.tau - t_switch + p.t_return,
+        u_rest=u_rest,
+    )
+
+
+class _Commands(NamedTuple):
+    """Full-serve command times, joint commands, predicted positions and velocities."""
+
+    t: npt.NDArray[np.float64]
+    u: npt.NDArray[np.float64]
+    q: npt.NDArray[np.float64]
+    qd: npt.NDArray[np.float64]
+
+
+def _joined_commands(prim: Any, plan: Any, i_sw: int, t_switch: float) -> _Commands:
+    """The toss's commands up to the switch followed by the strike plan's."""
+    return _Commands(
+        np.concatenate([prim.t[:i_sw], t_switch + np.asarray(plan.t)]),
+        np.concatenate([prim.u[:i_sw], plan.u]),
+        np.concatenate([prim.q[:i_sw], plan.q]),
+        np.concatenate([prim.X[:i_sw, :, 1], plan.qd]),
+    )
+
+
+def _motion_collision(context: EvaluationContext, side: TossSide, i_sw: int, t_full: Any, q_full: Any) -> Any:
+    """Collision report of the whole motion (the toss part is the same for every serve of a side: cached)."""
+    report = context.toss_collision(side, i_sw)
+    if not report.collides:
+        report = context.collision.check(t_full[i_sw:], q_full[i_sw:])
+    return report
+
+
+def _racket_motion(
+    context: EvaluationContext, toss: TossModel, tau: float, t_full: Any, q_full: Any
+) -> SampledRacketMotion:
+    """The racket poses from just before the lift to shortly after the contact, for the ball predictor."""
+    window = (t_full >= toss.t_lift - 0.01) & (t_full <= tau + 0.25)
+    positions, rotations = context.racket_poses(q_full[window])
+    return SampledRacketMotion(t_full[window], positions, rotations)
 
 
 def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any | None = None) -> ServeMotion:
@@ -515,92 +567,111 @@ def plan_motion(serve: HandServe, context: EvaluationContext, *, warm_start: Any
     :attr:`ServeMotion.failure`.
     """
     from studio.planning.serve_plan import start_from_toss
-    from studio.planning.strike import StrikeTarget
 
     timings: dict[str, float] = {}
     clock = time.perf_counter()
-    robot = context.robot
     toss = context.toss_model(serve.side)
     target = strike_target(serve, toss)
     prim = toss.primitive
     p = serve.params
     t_switch = float(prim.t[prim.index_at(toss.t_lift + context.switch_delay)])
-
-    def failed(status: Status, reason: str, **kw: Any) -> ServeMotion:
-        return ServeMotion(
-            serve,
-            target,
-            kw.get("plan"),
-            kw.get("t"),
-            kw.get("u"),
-            kw.get("q"),
-            kw.get("collision"),
-            (status, reason),
-            None,
-            timings,
-            qd=kw.get("qd"),
-            preparation=context.preparation(serve.side) if "t" in kw else None,
-        )
-
+    unplanned = ServeMotion(serve, target, None, None, None, None, None, None, None, timings)
     if p.tau <= t_switch + 0.05:
-        return failed(
-            "planner_failed", f"contact time tau = {p.tau:.3f} s leaves no time to strike (lift at {toss.t_lift:.3f} s)"
-        )
+        reason = f"contact time tau = {p.tau:.3f} s leaves no time to strike (lift at {toss.t_lift:.3f} s)"
+        return replace(unplanned, failure=("planner_failed", reason))
     # The strike continues the toss commands u[:k] seamlessly from the predicted state at t_k.
     start, i_sw = start_from_toss(prim, t_switch)
-    plan = context.planner_for(serve.limit_scale).plan(
-        start,
-        StrikeTarget(
-            tau=p.tau - t_switch,
-            position=np.asarray(target.position),
-            normal=np.asarray(target.normal),
-            velocity=np.asarray(target.velocity),
-            tau_f=p.tau - t_switch + p.t_return,
-            u_rest=robot.q_rest,
-        ),
-        warm_start=warm_start,
-    )
+    goal = _strike_goal(serve, target, t_switch, context.robot.q_rest)
+    plan = context.planner_for(serve.limit_scale).plan(start, goal, warm_start=warm_start)
     clock = _lap(timings, "plan", clock)
     if not plan.ok:
-        return failed("planner_failed", f"planner: {plan.status}: {plan.reason}", plan=plan)
-    t_full = np.concatenate([prim.t[:i_sw], t_switch + np.asarray(plan.t)])
-    u_full = np.concatenate([prim.u[:i_sw], plan.u])
-    q_full = np.concatenate([prim.q[:i_sw], plan.q])
-    qd_full = np.concatenate([prim.X[:i_sw, :, 1], plan.qd])
-    # The toss part is the same for every serve of a side: checked once, cached.
-    report = context.toss_collision(serve.side, i_sw)
-    if not report.collides:
-        report = context.collision.check(t_full[i_sw:], q_full[i_sw:])
+        return replace(unplanned, plan=plan, failure=("planner_failed", f"planner: {plan.status}: {plan.reason}"))
+    c = _joined_commands(prim, plan, i_sw, t_switch)
+    planned = replace(unplanned, plan=plan, t=c.t, u=c.u, q=c.q, qd=c.qd)
+    report = _motion_collision(context, serve.side, i_sw, c.t, c.q)
     clock = _lap(timings, "collision", clock)
     if report.collides:
-        return failed(
-            "collision",
-            f"collision: {report.describe()}",
-            plan=plan,
-            t=t_full,
-            u=u_full,
-            q=q_full,
-            qd=qd_full,
-            collision=report,
-        )
-    window = (t_full >= toss.t_lift - 0.01) & (t_full <= p.tau + 0.25)
-    positions, rotations = context.racket_poses(q_full[window])
-    racket = SampledRacketMotion(t_full[window], positions, rotations)
+        failure: tuple[Status, str] = ("collision", f"collision: {report.describe()}")
+        return replace(planned, collision=report, failure=failure, preparation=context.preparation(serve.side))
+    racket = _racket_motion(context, toss, p.tau, c.t, c.q)
     _lap(timings, "racket_fk", clock)
-    return ServeMotion(
-        serve,
-        target,
-        plan,
-        t_full,
-        u_full,
-        q_full,
-        report,
-        None,
-        racket,
-        timings,
-        qd=qd_full,
-        preparation=context.preparation(serve.side),
+    return replace(planned, collision=report, racket=racket, preparation=context.preparation(serve.side))
+
+
+def _check_toss_choice(serve: HandServe, toss: TossModel, toss_sample: int | None, mujoco: bool) -> None:
+    """Refuse a recorded toss the side does not have, or one combined with the MuJoCo rollout."""
+    if toss_sample is not None and not (0 <= toss_sample < toss.n_tosses):
+        raise InvalidInputError(
+            f"toss sample {toss_sample} out of range: the {serve.side} toss has {toss.n_tosses} recordings"
+        )
+    if mujoco and toss_sample is not None:
+        raise InvalidInputError(
+            f"the MuJoCo rollout tosses the ball from the cup as the motion predicts: it cannot replay recorded toss {toss_sample + 1}; "
+            "evaluate the mean toss path with it, or the recorded toss without it"
+        )
+
+
+def _ball_start(
+    toss: TossModel, context: EvaluationContext, tau: float, t_start: float, toss_sample: int | None
+) -> Any:
+    """The ball state at ``t_start`` whose flight passes through the mean path (or a recorded
+    toss's own recorded state) at tau, so that the ball touches the racket at tau (strike_target)."""
+    if toss_sample is None:
+        return toss.mean_start_state(t_start, tau, flight=context.flight)
+    return toss.recorded_start_state(toss_sample, t_start, tau, flight=context.flight)
+
+
+def _mujoco_rollout(motion: ServeMotion, context: EvaluationContext, t_end: float) -> Any:
+    """The MuJoCo rollout of the whole serve, the ball tossed from the cup, until ``t_end``."""
+    from studio.sim.rollout import rollout
+
+    assert motion.t is not None
+    # the robot as planned, then at rest until the ball's flight ends (t_end > t_full[-1])
+    X = motion.joint_states(t_end, context.robot.dynamics)
+    return rollout(
+        context.mujoco_scene,
+        t=motion.t,
+        X=X,
+        ball="cup",
+        t_end=t_end,
+        flight=context.flight,
+        racket_model=context.racket_model,
     )
+
+
+def _release(rollout_result: Any, toss: TossModel, ball0: Any, t_start: float) -> tuple[float, float]:
+    """(time, height) of the ball's release from the cup: the rollout's own, else the toss
+    model's lift with the ball's height extrapolated back to it."""
+    release = getattr(rollout_result, "release", None)
+    if release is not None:  # the rollout's own release from the cup
+        return float(release.time), float(release.position[2])
+    # the toss model's lift, the ball's height extrapolated back to it
+    release_t = float(toss.t_lift)
+    return release_t, float(ball0.p[2] - ball0.v[2] * (t_start - release_t))
+
+
+def _reward_terms(legality: LegalityReport, metrics: BallMetrics, weights: RewardWeights) -> RewardTerms:
+    """The reward of a legal serve from its second bounce and net crossing, else the legality penalty."""
+    if legality.legal and metrics.second_bounce is not None:
+        sb = metrics.second_bounce
+        net = metrics.net if metrics.net is not None else {}
+        return reward(
+            p2=sb["p"],
+            v2=sb["v"],
+            w2=sb["w"],
+            max_height=metrics.max_height or 0.0,
+            weights=weights,
+            v_net=net.get("v"),
+            w_net=net.get("w"),
+        )
+    return RewardTerms(s_leg=legality.penalty)
+
+
+def _verdict(legality: LegalityReport) -> tuple[Status, str]:
+    """(status, one-line reason) of a checked serve."""
+    failure = legality.first_failure
+    status: Status = "legal" if failure is None else "illegal"
+    return status, "legal serve" if failure is None else f"{failure.label}: {failure.detail}"
 
 
 def evaluate_motion(
@@ -624,28 +695,13 @@ def evaluate_motion(
     clock = time.perf_counter()
     serve = motion.serve
     toss = context.toss_model(serve.side)
-    if toss_sample is not None and not (0 <= toss_sample < toss.n_tosses):
-        raise InvalidInputError(
-            f"toss sample {toss_sample} out of range: the {serve.side} toss has {toss.n_tosses} recordings"
-        )
-    if mujoco and toss_sample is not None:
-        raise InvalidInputError(
-            f"the MuJoCo rollout tosses the ball from the cup as the motion predicts: it cannot replay recorded toss {toss_sample + 1}; "
-            "evaluate the mean toss path with it, or the recorded toss without it"
-        )
+    _check_toss_choice(serve, toss, toss_sample, mujoco)
     if motion.failure is not None:
         return replace(_failure(motion, toss, timings), cup_hold=context.cup_hold(serve.side))
     assert motion.t is not None and motion.q is not None and motion.racket is not None
-    p = serve.params
-    t_full = motion.t
     t_start = toss.t_lift + 0.005
-    # The state at t_start whose flight passes through the mean path (or a recorded toss's
-    # own recorded state) at tau, so that the ball touches the racket at tau (strike_target).
-    if toss_sample is None:
-        ball0 = toss.mean_start_state(t_start, p.tau, flight=context.flight)
-    else:
-        ball0 = toss.recorded_start_state(toss_sample, t_start, p.tau, flight=context.flight)
-    t_end = p.tau + FLIGHT_AFTER_CONTACT
+    ball0 = _ball_start(toss, context, serve.params.tau, t_start, toss_sample)
+    t_end = serve.params.tau + FLIGHT_AFTER_CONTACT
     ball = simulate(
         BallState(ball0.p, ball0.v, np.zeros(3)),
         t_end - t_start,
@@ -656,63 +712,27 @@ def evaluate_motion(
         max_table_bounces=2,
     )
     clock = _lap(timings, "ball", clock)
-
     rollout_result = None
     source: Any = ball
     if mujoco:
-        from studio.sim.rollout import rollout
-
-        # the robot as planned, then at rest until the ball's flight ends (t_end > t_full[-1])
-        X = motion.joint_states(t_end, context.robot.dynamics)
-        rollout_result = rollout(
-            context.mujoco_scene,
-            t=t_full,
-            X=X,
-            ball="cup",
-            t_end=t_end,
-            flight=context.flight,
-            racket_model=context.racket_model,
-        )
-        source = rollout_result
+        source = rollout_result = _mujoco_rollout(motion, context, t_end)
         clock = _lap(timings, "mujoco", clock)
-
     contacts = tuple(getattr(source, "events", None) or getattr(source, "contacts", None) or ())
     racket_hits = [c for c in contacts if c.kind == "racket"]
-    strike_t = racket_hits[0].t if racket_hits else None
-    release = getattr(rollout_result, "release", None)
-    if release is not None:  # the rollout's own release from the cup
-        release_t, release_z = float(release.time), float(release.position[2])
-    else:  # the toss model's lift, the ball's height extrapolated back to it
-        release_t = float(toss.t_lift)
-        release_z = float(ball0.p[2] - ball0.v[2] * (t_start - release_t))
+    release_t, release_z = _release(rollout_result, toss, ball0, t_start)
     outcome = ServeOutcome(
         t=np.asarray(source.t),
         p=np.asarray(source.p),
         contacts=contacts,
         release_t=release_t,
         release_z=release_z,
-        robot_rest_t=float(t_full[-1]),
+        robot_rest_t=float(motion.t[-1]),
     )
     legality = check_serve(outcome, params=context.rules)
-    metrics = ball_metrics(source, strike_t=strike_t)
-    if legality.legal and metrics.second_bounce is not None:
-        sb = metrics.second_bounce
-        net = metrics.net if metrics.net is not None else {}
-        terms = reward(
-            p2=sb["p"],
-            v2=sb["v"],
-            w2=sb["w"],
-            max_height=metrics.max_height or 0.0,
-            weights=weights,
-            v_net=net.get("v"),
-            w_net=net.get("w"),
-        )
-    else:
-        terms = RewardTerms(s_leg=legality.penalty)
+    metrics = ball_metrics(source, strike_t=racket_hits[0].t if racket_hits else None)
+    terms = _reward_terms(legality, metrics, weights)
     _lap(timings, "checks", clock)
-    failure = legality.first_failure
-    status: Status = "legal" if failure is None else "illegal"
-    reason = "legal serve" if failure is None else f"{failure.label}: {failure.detail}"
+    status, reason = _verdict(legality)
     lift = toss.t <= toss.t_lift
     return Evaluation(
         motion=motion,
