@@ -59,13 +59,22 @@ def test_metrics_tab_shows_the_joint_efforts(app: StudioApp) -> None:
 
 
 def test_non_finite_control_is_rejected_not_evaluated(app: StudioApp) -> None:
+    assert app.worker.wait_idle(120)
+    kept = app.vx.value
     before = app.worker.latest_ticket
-    app._suspend = True
-    app.vx.value = math.nan
-    app._suspend = False
-    app._changed()
-    assert "Input rejected" in app.message_md.content and "v_x" in app.message_md.content
+    app.vx.value = math.nan  # the control's change callback refuses it and puts the last valid value back
+    assert "Refused" in app.message_md.content and "v_x" in app.message_md.content and "[-10, 10] m/s" in app.message_md.content
+    assert app.vx.value == kept
     assert app.worker.latest_ticket == before  # nothing submitted
+    app._suspend = True
+    app.vx._impl.value = math.nan  # around every callback: reading the controls still refuses it
+    app._suspend = False
+    try:
+        app._changed()
+        assert "Input rejected" in app.message_md.content and "v_x" in app.message_md.content
+        assert app.worker.latest_ticket == before
+    finally:
+        app.vx._impl.value = kept
     app.vx.value = 3.0
     assert app.worker.wait_idle(120)
 
@@ -75,13 +84,11 @@ def test_joint_limit_controls_set_the_serves_limit_scale(app: StudioApp) -> None
 
     from studio.serve.params import LimitScale
 
-    app._suspend = True
-    app.limit_accel.value = math.nan
-    app._suspend = False
+    assert app.worker.wait_idle(120)
     before = app.worker.latest_ticket
-    app._changed()
-    assert "Input rejected" in app.message_md.content and "acceleration limit" in app.message_md.content
-    assert app.worker.latest_ticket == before
+    app.limit_accel.value = math.nan
+    assert "Refused" in app.message_md.content and "acceleration limit" in app.message_md.content and "[0.25, 4]" in app.message_md.content
+    assert app.worker.latest_ticket == before and math.isfinite(app.limit_accel.value)
     scale = LimitScale(velocity=1.2, acceleration=1.5, jerk=3.7)
     app.load(replace(app.last.serve, limit_scale=scale))  # type: ignore[union-attr]
     assert (app.limit_speed.value, app.limit_accel.value, app.limit_jerk.value) == (1.2, 1.5, 3.7)

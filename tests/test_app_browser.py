@@ -372,3 +372,167 @@ def test_break_a_serve_see_the_pinned_one_beside_it_and_undo(studio, page) -> No
     _shot(page, "studio_after_undo.png")
     page.get_by_role("button", name="Clear A").click()
     _wait(lambda: app.pin is None and app.scene.ghost_nodes == (), 10, "the pin cleared")
+
+
+STORM_SLIDERS = {"v_x": (-10.0, 10.0), "v_y": (-5.0, 5.0), "v_z": (-5.0, 5.0), "roll": (-180.0, 180.0), "yaw": (-90.0, 270.0), "tau [s]": (0.55, 1.05), "return [s]": (0.4, 1.2)}
+"""The sliders the five pages move (label -> range); the contact offset and joint-limit folders start closed."""
+
+CORRUPT_UPLOAD_JS = """() => {
+  const input = document.querySelector('input[type=file]');
+  const file = new File([new TextEncoder().encode('{"name": "x", "params": {"tau": NaN}}')], "\\ud800 serve.json", {type: "application/json"});
+  const dt = new DataTransfer();
+  dt.items.add(file);
+  input.files = dt.files;
+  input.dispatchEvent(new Event("change", {bubbles: true}));
+  return file.name;
+}"""
+"""Uploads, from the page, a corrupt serve file (NaN) named with a lone surrogate; a
+browser's File turns the surrogate into U+FFFD, so the name arrives as valid text."""
+
+TYPE_JS = """(box, value) => {
+  const setter = Object.getOwnPropertyDescriptor(HTMLInputElement.prototype, "value").set;
+  setter.call(box, String(value));
+  box.dispatchEvent(new Event("input", {bubbles: true}));
+}"""
+"""Types ``value`` into an input as a user does (React sees an input event)."""
+
+STORM_JS = """([boxes, ranges, seconds, pastEnd]) => {
+  const setter = Object.getOwnPropertyDescriptor(HTMLInputElement.prototype, "value").set;
+  window.__storm = new Promise(resolve => {
+    let moves = 0, past = 0;
+    const t0 = performance.now();
+    const timer = setInterval(() => {
+      if (performance.now() - t0 > 1000 * seconds) { clearInterval(timer); resolve([moves, past]); return; }
+      const i = Math.floor(Math.random() * boxes.length);
+      const [lo, hi] = ranges[i];
+      let value = (lo + Math.random() * (hi - lo)).toFixed(2);
+      if (Math.random() < pastEnd) { value = String(hi + 50); past++; }
+      setter.call(boxes[i], value);
+      boxes[i].dispatchEvent(new Event("input", {bubbles: true}));
+      moves++;
+    }, 60);
+  });
+  return true;
+}"""
+"""Starts, in a page, ``seconds`` of slider changes every 60 ms (a random slider of
+``boxes``, a random value in its range, a share ``pastEnd`` of them 50 past its end), as a
+user typing into the number boxes; ``window.__storm`` resolves to [changes, past the end].
+Each page runs its own, so the five pages change sliders at the same time."""
+
+
+class _RawUploader:
+    """A WebSocket client speaking viser's protocol (as any script on the machine can),
+    which uploads a file whose name holds a lone surrogate: a browser's JavaScript sends
+    such text as bytes that are not UTF-8 (the issue's upload)."""
+
+    def __init__(self, port: int, upload_uuid: str) -> None:
+        import threading
+
+        import viser
+        from websockets.sync.client import connect
+
+        self.uuid = upload_uuid
+        self.ws = connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"], max_size=None)
+        self.closed: BaseException | None = None
+        threading.Thread(target=self._drain, daemon=True).start()
+
+    def _drain(self) -> None:
+        try:
+            while True:
+                self.ws.recv()
+        except Exception as err:  # noqa: BLE001 - recorded: the connection ended
+            self.closed = err
+
+    def upload(self, name: str, content: bytes) -> None:
+        import msgspec
+
+        mark = "@" * len(name.encode("utf-8", "surrogatepass"))
+        start = {"type": "FileTransferStartUpload", "source_component_uuid": self.uuid, "transfer_uuid": "raw-1", "filename": mark,
+                 "mime_type": "application/json", "part_count": 1, "size_bytes": len(content)}  # fmt: skip
+        self.ws.send(msgspec.msgpack.encode(start).replace(mark.encode(), name.encode("utf-8", "surrogatepass")))
+        self.ws.send(msgspec.msgpack.encode({"type": "FileTransferPart", "source_component_uuid": self.uuid, "transfer_uuid": "raw-1", "part_index": 0, "content": content}))
+
+    def close(self) -> None:
+        self.ws.close()
+
+
+def _number_box(page, label: str):  # type: ignore[no-untyped-def]
+    """The number box beside the slider labelled ``label`` (an element handle)."""
+    row = page.get_by_text(label, exact=True).first.locator("xpath=ancestor::div[contains(@class, 'mantine-Flex-root')][1]")
+    return row.locator("input").last.element_handle()
+
+
+def test_five_browsers_moving_sliders_and_a_surrogate_named_upload_leave_every_client_answered(studio, page, caplog, capfd) -> None:  # type: ignore[no-untyped-def]
+    """Five pages move sliders at once for ~25 s (a few values past a slider's end among
+    them) while one uploads a corrupt file named with a lone surrogate: the studio keeps
+    answering every page (each shows the verdict of a last change made from each page in
+    turn), refuses the upload visibly, and logs no traceback."""
+    import logging
+
+    from studio.storage.jsonfile import lone_surrogate
+
+    app, url, _ = studio
+    caplog.set_level(logging.WARNING)
+    capfd.readouterr()  # earlier output is not this test's
+    _example(app)
+    browser = page.context.browser
+    contexts = [browser.new_context(viewport={"width": 1100, "height": 760}) for _ in range(4)]
+    try:
+        pages = [page] + [c.new_page() for c in contexts]
+        for pg in pages[1:]:
+            pg.goto(url)
+        for pg in pages[1:]:  # software WebGL on a loaded machine: a page may take a while
+            pg.get_by_text("Racket velocity [m/s]").wait_for(timeout=240_000)
+        for pg in pages:
+            _close_toasts(pg)
+            pg.get_by_role("tab", name="Serve", exact=True).click()
+        _wait(lambda: len(app.server.get_clients()) >= 5, 60, "five connected pages")
+        name_box = pages[3].get_by_text("Name", exact=True).first.locator("xpath=ancestor::div[contains(@class, 'mantine-Flex-root')][1]").locator("input").last.element_handle()
+        raw = _RawUploader(app.server.get_port(), app.files.upload_button._impl.uuid)
+        seen = len(app.messages)
+        ranges = [list(r) for r in STORM_SLIDERS.values()]
+        start = time.monotonic()
+        for pg in pages:
+            assert pg.evaluate(STORM_JS, [[_number_box(pg, label) for label in STORM_SLIDERS], ranges, 25.0, 0.02])
+        time.sleep(8.0)
+        assert pages[2].evaluate(CORRUPT_UPLOAD_JS) == "\ufffd serve.json"  # corrupt, from a browser
+        name_box.evaluate(TYPE_JS, "evil \ud800")  # a lone surrogate typed into a text field
+        raw.upload("\ud800 serve.json", b'{"tau": NaN}')  # the issue's upload: the name's surrogate on the wire
+        counts = [pg.evaluate("() => window.__storm") for pg in pages]  # each page's changes, once its storm is over
+        moves, past_end = sum(c[0] for c in counts), sum(c[1] for c in counts)
+        notes = [f"{moves} slider changes ({past_end} past a slider's end) from 5 pages at once in {time.monotonic() - start:.0f} s: {counts}"]
+        assert all(c[0] > 0 for c in counts)
+        refused = lambda what: [m for m in app.messages[seen:] if what in m]  # noqa: E731
+        _wait(lambda: bool(refused("Upload rejected")), 60, "the refusal of the browser's corrupt upload")
+        _wait(lambda: bool(refused("not valid Unicode")), 60, "the refusal of the surrogate-named upload")
+        notes += [f"browser upload: {refused('Upload rejected')[0]}", f"raw upload: {refused('not valid Unicode')[0]}", f"name field: {app.form.name.value!r}"]
+        assert "\ufffd serve.json" in refused("Upload rejected")[0] and "must be a finite number" in refused("Upload rejected")[0]
+        assert lone_surrogate(app.form.name.value) is None  # the surrogate typed in the page never became the serve's name
+        assert raw.closed is None  # the sender of the undecodable upload is still connected
+        raw.close()
+        if past_end:
+            assert any(m.startswith("**Refused:** ") and "must be a number in [" in m for m in app.messages[seen:])
+        assert app.last is not None
+        # every page is still answered: a change from each in turn, its verdict on all five
+        base = round(app.form.vx.value, 1)
+        for i, pg in enumerate(pages):
+            vx = round(base + (0.3 if base < 0 else -0.3) * (i + 1), 2)
+            _set_number(pg, "v_x", vx)
+            _wait(lambda vx=vx: app.worker.wait_idle(0.1) and app.last is not None and app.last.serve.params.velocity[0] == pytest.approx(vx, abs=0.026), 120, f"page {i}'s change evaluated")
+            ev = app.last
+            badge = {"legal": "LEGAL", "illegal": "ILLEGAL", "planner_failed": "NO PLAN", "collision": "COLLISION"}[ev.status]
+            for j, other in enumerate(pages):
+                _wait(lambda other=other, ev=ev, badge=badge: _overlay(other).get("reward F", [""])[0] == f"{ev.reward.total:+.3f}" and _overlay(other).get("verdict", [""])[0] == badge, 60, f"page {j} to show page {i}'s verdict")
+        for i, pg in enumerate(pages):
+            _shot(pg, f"studio_five_clients_{i}.png")
+        assert all(rule.refusal(handle.value) is None for handle, rule in app.form.rules.values())  # every control within its rule
+        assert app.controls().serve.params == app.last.serve.params  # what is shown is what was evaluated
+    finally:
+        for c in contexts:
+            c.close()
+    err = capfd.readouterr().err
+    assert "Traceback" not in err, err
+    tracebacks = [f"{r.name}: {r.getMessage()}" for r in caplog.records if r.exc_info or "Traceback" in r.getMessage()]
+    assert not tracebacks, tracebacks
+    with capfd.disabled():
+        print("\n".join(notes + [f"log: {r.name}: {r.getMessage()}" for r in caplog.records]))

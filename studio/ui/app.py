@@ -17,6 +17,12 @@ change events, the worker, undo/redo and the pinned serve):
 - :class:`~studio.ui.jobs.JobRunner`: the Optimize tab (HEBO runs, Make robust);
 - :class:`~studio.ui.match_panel.MatchPanel`: the Match tab.
 
+Every control is registered with one :class:`~studio.ui.checks.InputGuard` with its own
+range or options, and :func:`studio.ui.wire.gate` puts those checks in front of viser's
+message handlers: a value a control does not accept (NaN, 1e300, text for a number, an
+unlisted option or file, 24 workers) is refused with a message naming the control and
+what it accepts, and never reaches an evaluation or a job.
+
 Run with ``serve-studio app`` (``./dev studio``). Listens on 127.0.0.1 by default.
 """
 
@@ -29,7 +35,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from studio.errors import StudioError
+from studio.errors import DataFileError, StudioError
 from studio.serve.evaluate import (
     EffortReport,
     Evaluation,
@@ -38,20 +44,23 @@ from studio.serve.evaluate import (
     evaluate_serve,
     report_markdown,
 )
-from studio.serve.params import HandServe, load_serve
+from studio.serve.params import HandServe
+from studio.ui import wire
 from studio.ui.camera import (
+    VIEW_NAMES,
     CameraView,
     apply_camera,
     default_view,
     set_initial_camera,
     view_named,
 )
+from studio.ui.checks import Choice, InputGuard, choices, shown
 from studio.ui.controls import Controls, ServeForm, fallback_serve
-from studio.ui.files import EXAMPLES_DIR, FilesPanel, inside, list_serves, safe_name
+from studio.ui.files import EXAMPLES_DIR, FilesPanel, inside, list_serves, load_serve_in, safe_name, serve_files
 from studio.ui.history import History, Pin
 from studio.ui.jobs import NEW_RUN, JobRunner
 from studio.ui.match_panel import MatchPanel
-from studio.ui.overlay import CLEAR, PIN, RESTORE, UNDO, OverlayPanel, serve_numbers
+from studio.ui.overlay import CLEAR, PIN, REDO, RESTORE, UNDO, OverlayPanel, serve_numbers
 from studio.ui.playback import PlaybackPanel
 from studio.ui.scene import SceneFrame, StudioScene, ghost_frame, scene_frame
 from studio.ui.worker import LatestWorker, WorkResult
@@ -87,16 +96,40 @@ class StudioApp:
         """The camera preset last chosen."""
         self._lock = threading.RLock()  # scene and ``last*``; re-entrant: GUI setters call back synchronously
         self._suspend = False
+        self.message_md: Any = None
+        self.messages: list[str] = []
+        """The messages shown under the tabs, newest last (the latest 200)."""
+        self._early_messages: list[str] = []
+        self.guard = InputGuard(self.message)
         self.worker: LatestWorker[Controls, Evaluation] = LatestWorker(self._compute, self._publish, name="studio-evaluator")
         self._build_gui()
-        serves = list_serves(serves_dir) or list_serves(EXAMPLES_DIR)
-        first = next(iter(serves.values()), None)
-        self.load(load_serve(first) if first is not None else fallback_serve())
+        wire.gate(server, self.guard, self.message)
+        self.load(self._first_serve())
         set_initial_camera(server, default_view())
         self.playback.start_loop()
         self.files.poll_open_request(act=False)  # a request older than this studio is not acted on
         if watch_open_requests:
             self.files.watch_open_requests()
+
+    def _first_serve(self) -> HandServe:
+        """The first readable serve of the serves folder (else of the examples, else a plain
+        push); unreadable files are skipped, and named in the message line."""
+        problems: list[str] = []
+        for folder in (self.serves_dir, EXAMPLES_DIR):
+            listed, unlisted = serve_files(folder)
+            problems += unlisted
+            for path in listed.values():
+                try:
+                    serve = load_serve_in(folder, path)
+                except (StudioError, OSError) as err:
+                    problems.append(str(err) if isinstance(err, DataFileError) else f"{path}: {err}")
+                    continue
+                if problems:
+                    self.message("**Skipped unreadable serve files:**  \n" + "  \n".join(problems[:10]) + (f"  \n... and {len(problems) - 10} more" if len(problems) > 10 else ""))
+                return serve
+        if problems:
+            self.message("**Skipped unreadable serve files:**  \n" + "  \n".join(problems[:10]))
+        return fallback_serve()
 
     def __getattr__(self, name: str) -> Any:
         """The serve controls as attributes of the app (``app.vx`` is ``app.form.vx``), as
@@ -113,11 +146,11 @@ class StudioApp:
         gui.configure_theme(control_width="large")
         self.overlay = OverlayPanel(gui)
         self.files = FilesPanel(self)
-        self.playback = PlaybackPanel(gui, self.scene, self._lock)
+        self.playback = PlaybackPanel(gui, self.scene, self._lock, self.guard)
         tabs = gui.add_tab_group()
         with tabs.add_tab("Serve"):
             self.files.add_picker(gui)
-            self.form = ServeForm(gui)
+            self.form = ServeForm(gui, self.guard)
             self.files.add_folder(gui)
         with tabs.add_tab("Checks"):
             self.status_md = gui.add_markdown("_evaluating..._")
@@ -128,7 +161,7 @@ class StudioApp:
             self.jobs = JobRunner(self, gui, self.runs_dir)
         with tabs.add_tab("Match"):
             self.match = MatchPanel(self, gui, show_entry=self.files.show_library_entry, play=self.playback.play_from_start)
-        self.message_md = gui.add_markdown("")
+        self.message_md = gui.add_markdown("\n\n".join(self._early_messages))
         self._wire()
         self.files.refresh_serve_files()
         self.files.refresh_library()
@@ -136,15 +169,24 @@ class StudioApp:
 
     def _wire(self) -> None:
         """Connect the controls and the overlay's buttons to the app."""
+        guard = self.guard
         for handle in self.form.inputs:
-            handle.on_update(lambda _event, key=handle.label: self._changed(key=key))
-        self.form.side.on_update(lambda _event: self._refresh_toss_options())
-        self.form.side.on_update(lambda _event: self.jobs.refresh_runs())
-        self.form.task.on_update(lambda _event: self.jobs.refresh_runs())
-        self.overlay.view.on_click(lambda event: self.set_view(event.target.value, event.client))
-        self.overlay.history.on_click(lambda event: self.undo() if event.target.value == UNDO else self.redo())
+
+            def changed(_event: Any, key: str = handle.label) -> None:
+                self._changed(key=key)
+
+            guard.on_update(handle, changed)
+        guard.on_update(self.form.side, lambda _event: self._refresh_toss_options())
+        guard.on_update(self.form.side, lambda _event: self.jobs.refresh_runs())
+        guard.on_update(self.form.task, lambda _event: self.jobs.refresh_runs())
+        ov = self.overlay
+        guard.add(ov.view, Choice("View", choices(*VIEW_NAMES)))
+        guard.add(ov.history, Choice("Edits", choices(UNDO, REDO)))
+        guard.add(ov.ab, Choice("A/B", choices(PIN, RESTORE, CLEAR)))
+        guard.on_update(ov.view, lambda event: self.set_view(event.target.value, event.client))
+        guard.on_update(ov.history, lambda event: self.undo() if event.target.value == UNDO else self.redo())
         ab = {PIN: self.pin_current, RESTORE: self.restore_pin, CLEAR: self.clear_pin}
-        self.overlay.ab.on_click(lambda event: ab[event.target.value]())
+        guard.on_update(ov.ab, lambda event: ab[event.target.value]())
 
     # -- what the panels may ask (studio.ui.host.StudioHost) ---------------------------
 
@@ -157,7 +199,14 @@ class StudioApp:
         return str(self.form.side.value), str(self.form.task.value)
 
     def message(self, text: str) -> None:
-        """Show a Markdown message under the tabs."""
+        """Show a Markdown message under the tabs (text that is not valid Unicode escaped)."""
+        text = shown(text)
+        with self._lock:
+            self.messages.append(text)
+            del self.messages[:-200]
+        if self.message_md is None:  # before the GUI is built
+            self._early_messages.append(text)
+            return
         self.message_md.content = text
 
     def latest(self) -> tuple[Evaluation | None, EffortReport | None]:

@@ -18,12 +18,14 @@ import numpy as np
 from studio.errors import InvalidInputError
 from studio.serve.params import (
     LIMIT_SCALE_RANGE,
+    MAX_NAME_LENGTH,
     GenomeBounds,
     HandServe,
     LimitScale,
     ServeParams,
 )
 from studio.serve.reward import TASKS
+from studio.ui.checks import Choice, Flag, InputGuard, Number, Rule, Text, choices, refusal_message
 
 MEAN_TOSS = "mean path"
 """The "Toss" choice that evaluates on the toss model's mean path."""
@@ -53,16 +55,27 @@ def toss_label(sample: int | None) -> str:
     return MEAN_TOSS if sample is None else f"recorded {sample + 1}"
 
 
+def display_name(name: str) -> str:
+    """A serve name as the "Name" field takes it: control characters as spaces, at most
+    :data:`~studio.serve.params.MAX_NAME_LENGTH` characters."""
+    return "".join(" " if ord(ch) < 32 or ord(ch) == 127 else ch for ch in name)[:MAX_NAME_LENGTH]
+
+
 class ServeForm:
     """The serve controls, added to the current viser GUI container.
 
+    Every control is registered with ``guard`` with its own range or options
+    (:mod:`studio.ui.checks`): a value outside them never reaches an evaluation.
+
     Args:
         gui: the server's ``gui`` API.
+        guard: the studio's input checks (None: the controls are not registered).
         bounds: slider ranges (the genome's physical bounds).
     """
 
-    def __init__(self, gui: Any, bounds: GenomeBounds | None = None) -> None:
+    def __init__(self, gui: Any, guard: InputGuard | None = None, bounds: GenomeBounds | None = None) -> None:
         b = bounds or GenomeBounds()
+        self._toss_options: tuple[str, ...] = (MEAN_TOSS,)
         self.name = gui.add_text("Name", initial_value="my serve")
         self.side = gui.add_dropdown("Toss side", options=["right", "left"], initial_value="right")
         self.toss = gui.add_dropdown("Toss", options=[MEAN_TOSS], initial_value=MEAN_TOSS)
@@ -88,24 +101,54 @@ class ServeForm:
             self.limit_jerk = gui.add_slider("jerk", min=lo, max=hi, step=0.05, initial_value=1.0)
         self.mujoco = gui.add_checkbox("MuJoCo rollout", initial_value=False)
 
+        def slider(handle: Any, label: str, unit: str) -> Number:
+            return Number(label, float(handle.min), float(handle.max), unit)
+
+        self.rules: dict[str, tuple[Any, Rule]] = {
+            "name": (self.name, Text("Name", MAX_NAME_LENGTH)),
+            "side": (self.side, Choice("Toss side", choices("right", "left"))),
+            "toss": (self.toss, Choice("Toss", lambda: self._toss_options)),
+            "task": (self.task, Choice("Task", choices(*TASKS))),
+            "tau": (self.tau, slider(self.tau, "tau", "s")),
+            "return": (self.t_return, slider(self.t_return, "return", "s")),
+            "v_x": (self.vx, slider(self.vx, "v_x", "m/s")),
+            "v_y": (self.vy, slider(self.vy, "v_y", "m/s")),
+            "v_z": (self.vz, slider(self.vz, "v_z", "m/s")),
+            "yaw": (self.yaw, slider(self.yaw, "yaw", "deg")),
+            "roll": (self.roll, slider(self.roll, "roll", "deg")),
+            "dp_x": (self.dpx, slider(self.dpx, "dp_x", "m")),
+            "dp_y": (self.dpy, slider(self.dpy, "dp_y", "m")),
+            "dp_z": (self.dpz, slider(self.dpz, "dp_z", "m")),
+            "speed limit": (self.limit_speed, slider(self.limit_speed, "speed limit", "x the robot's")),
+            "acceleration limit": (self.limit_accel, slider(self.limit_accel, "acceleration limit", "x the robot's")),
+            "jerk limit": (self.limit_jerk, slider(self.limit_jerk, "jerk limit", "x the robot's")),
+            "mujoco": (self.mujoco, Flag("MuJoCo rollout")),
+        }
+        """Each control's rule by key (the numeric keys are those of :meth:`read`'s errors)."""
+        if guard is not None:
+            for handle, rule in self.rules.values():
+                guard.add(handle, rule)
+
     @property
     def inputs(self) -> tuple[Any, ...]:
         """Every handle whose change re-evaluates the serve."""
         return (self.side, self.toss, self.task, self.tau, self.t_return, self.vx, self.vy, self.vz, self.yaw, self.roll, self.dpx, self.dpy, self.dpz, self.limit_speed, self.limit_accel, self.limit_jerk, self.mujoco)
 
+    def _checked(self, key: str) -> Any:
+        """The value of control ``key`` if its rule accepts it, else InvalidInputError
+        naming the control and its range or options."""
+        handle, rule = self.rules[key]
+        value = handle.value
+        why = rule.refusal(value)
+        if why is not None:
+            raise InvalidInputError(refusal_message(rule.label, value, why, has_kept=False).removeprefix("**Refused:** "))
+        return value
+
     def _numbers(self) -> dict[str, float]:
-        """The numeric controls by name; InvalidInputError names a non-finite one."""
-        values = {
-            "tau": self.tau.value, "return": self.t_return.value,
-            "v_x": self.vx.value, "v_y": self.vy.value, "v_z": self.vz.value,
-            "yaw": self.yaw.value, "roll": self.roll.value,
-            "dp_x": self.dpx.value, "dp_y": self.dpy.value, "dp_z": self.dpz.value,
-            "speed limit": self.limit_speed.value, "acceleration limit": self.limit_accel.value, "jerk limit": self.limit_jerk.value,
-        }  # fmt: skip
-        for key, value in values.items():
-            if not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise InvalidInputError(f"control {key!r} must be a finite number, got {value!r}")
-        return {k: float(v) for k, v in values.items()}
+        """The numeric controls by name; InvalidInputError names one that is not a finite
+        number within its slider's range."""
+        keys = ("tau", "return", "v_x", "v_y", "v_z", "yaw", "roll", "dp_x", "dp_y", "dp_z", "speed limit", "acceleration limit", "jerk limit")
+        return {k: float(self._checked(k)) for k in keys}
 
     def read(self) -> Controls:
         """Read the controls into a validated snapshot (InvalidInputError names the control)."""
@@ -122,15 +165,17 @@ class ServeForm:
             scale = LimitScale(velocity=v["speed limit"], acceleration=v["acceleration limit"], jerk=v["jerk limit"])
         except InvalidInputError as err:
             raise InvalidInputError(f"joint limits control: {err}") from None
-        serve = HandServe(name=self.name.value.strip() or "my serve", side=self.side.value, params=params, task=self.task.value, limit_scale=scale)
-        toss = None if self.toss.value == MEAN_TOSS else int(self.toss.value.split()[-1]) - 1
-        return Controls(serve=serve, task=self.task.value, toss_sample=toss, mujoco=bool(self.mujoco.value))
+        name, side, task, toss_choice = (self._checked(k) for k in ("name", "side", "task", "toss"))
+        mujoco = self._checked("mujoco")
+        serve = HandServe(name=name.strip() or "my serve", side=side, params=params, task=task, limit_scale=scale)
+        toss = None if toss_choice == MEAN_TOSS else int(toss_choice.split()[-1]) - 1
+        return Controls(serve=serve, task=task, toss_sample=toss, mujoco=bool(mujoco))
 
     def write(self, serve: HandServe) -> None:
         """Put ``serve`` into the controls, each value clipped to its slider's range (the
         caller keeps the change callbacks quiet meanwhile)."""
         p = serve.params
-        self.name.value = serve.name
+        self.name.value = display_name(serve.name)
         self.side.value = serve.side
         if serve.task in TASKS:
             self.task.value = serve.task
@@ -156,5 +201,7 @@ class ServeForm:
         """List the mean path and ``n_tosses`` recorded tosses; keep (or set) the choice if listed."""
         options = [MEAN_TOSS, *(toss_label(i) for i in range(n_tosses))]
         wanted = self.toss.value if choice is None else choice
+        self._toss_options = (*self._toss_options, *options)  # both lists valid while they change
         self.toss.options = options
+        self._toss_options = tuple(options)
         self.toss.value = wanted if wanted in options else MEAN_TOSS

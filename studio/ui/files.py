@@ -5,20 +5,32 @@ the "Files" folder of the Serve tab: save as seed, download/upload serve JSON, e
 evaluated serve to the library (refused beyond a joint's effort limit unless "Export
 beyond effort limits" is ticked), load a library serve, and act on the dashboard's
 "Open in studio" (``open-request.json`` in the library folder).
+
+A file is only ever read from its folder: the "Serve file" choice must be one of the
+listed files and must resolve inside its folder (:func:`load_serve_in`; a symlink out is
+refused); a file whose name is not valid Unicode is not listed (it could not be shown).
+An upload is read as a serve file is (:func:`read_upload`: at most
+:data:`~studio.serve.params.MAX_SERVE_BYTES`, strict JSON through
+:func:`studio.storage.jsonfile.parse_json`), and every refusal names the file and the
+problem. The open-request watcher survives any request file.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
-from studio.errors import InvalidInputError, StudioError
+from studio.errors import DataFileError, InvalidInputError, StudioError
 from studio.paths import example_serves_dir
-from studio.serve.params import load_serve, save_serve, serve_from_json
+from studio.serve.params import MAX_SERVE_BYTES, HandServe, load_serve, save_serve, serve_from_json
+from studio.storage.jsonfile import lone_surrogate, parse_json
+from studio.ui.checks import Choice, Flag, Press, Upload, shown
 from studio.ui.host import StudioHost
+
+log = logging.getLogger("studio.ui")
 
 EXAMPLES_DIR = example_serves_dir()
 """The shipped example serves."""
@@ -38,11 +50,29 @@ def safe_name(name: str) -> str:
     return cleaned
 
 
+def serve_files(folder: Path) -> tuple[dict[str, Path], list[str]]:
+    """Serve JSON files in ``folder`` by file stem (sorted), and one line per file left
+    out because its name is not valid Unicode (it could not be shown in a browser)."""
+    try:
+        if not folder.is_dir():
+            return {}, []
+        paths = sorted(folder.glob("*.json"))
+    except OSError as err:
+        return {}, [f"{shown(str(folder))}: cannot list: {err.strerror or err}"]
+    listed: dict[str, Path] = {}
+    problems: list[str] = []
+    for path in paths:
+        if lone_surrogate(path.name) is not None:
+            problems.append(f"{shown(str(path))}: the file name is not valid Unicode (not listed; rename the file)")
+        else:
+            listed[path.stem] = path
+    return listed, problems
+
+
 def list_serves(folder: Path) -> dict[str, Path]:
-    """Serve JSON files in ``folder`` by file stem (sorted)."""
-    if not folder.is_dir():
-        return {}
-    return {p.stem: p for p in sorted(folder.glob("*.json"))}
+    """Serve JSON files in ``folder`` by file stem (sorted; names that are not valid
+    Unicode left out, :func:`serve_files`)."""
+    return serve_files(folder)[0]
 
 
 def inside(folder: Path, path: Path) -> bool:
@@ -50,8 +80,36 @@ def inside(folder: Path, path: Path) -> bool:
     try:
         path.resolve().relative_to(folder.resolve())
         return True
-    except ValueError:
+    except (ValueError, OSError, RuntimeError):  # RuntimeError: a symlink loop
         return False
+
+
+def load_serve_in(folder: Path, path: Path) -> HandServe:
+    """:func:`~studio.serve.params.load_serve` of ``path``, refused (DataFileError) unless it
+    resolves inside ``folder`` (``..`` or a symlink pointing out of it)."""
+    if not inside(folder, path):
+        raise DataFileError(shown(str(path)), f"resolves outside the folder {shown(str(folder))}; only files inside it are read")
+    return load_serve(path)
+
+
+def read_upload(name: Any, content: Any) -> HandServe:
+    """The serve of an uploaded file, or DataFileError naming the file and the problem:
+    a name that is not valid Unicode, no bytes, more than
+    :data:`~studio.serve.params.MAX_SERVE_BYTES`, not UTF-8, not strict JSON (NaN,
+    infinity, huge numbers, nesting, lone surrogates), not a valid serve."""
+    label = shown(name) if isinstance(name, str) else "upload"
+    if not isinstance(name, str) or not name:
+        raise DataFileError(label, "the upload has no file name")
+    pos = lone_surrogate(name)
+    if pos is not None:
+        raise DataFileError(label, f"the file name is not valid Unicode (a lone surrogate at position {pos}); rename the file and upload it again")
+    if not isinstance(content, bytes):
+        raise DataFileError(label, "the upload holds no file content")
+    if not content:
+        raise DataFileError(label, "the file is empty (0 bytes); a serve file is a JSON object")
+    if len(content) > MAX_SERVE_BYTES:
+        raise DataFileError(label, f"{len(content)} bytes, more than the {MAX_SERVE_BYTES} bytes a serve file may have")
+    return serve_from_json(parse_json(content, label), source=label)
 
 
 class FilesPanel:
@@ -64,15 +122,21 @@ class FilesPanel:
         self.host = host
         self._quiet = False  # setting the dropdowns' options is not a user's choice
         self._library_ids: dict[str, str] = {}
+        self._serve_choices: dict[str, tuple[Path, Path]] = {}
+        """"Serve file" entry -> (its folder, its file)."""
         self._open_nonce: str | None = None
+        self._open_problem: str | None = None
         self._open_lock = threading.Lock()
+        self._watch_stop = threading.Event()
 
     # -- GUI ---------------------------------------------------------------------------
 
     def add_picker(self, gui: Any) -> None:
         """The "Serve file" dropdown (examples and saved seeds)."""
         self.serve_file = gui.add_dropdown("Serve file", options=[CURRENT], initial_value=CURRENT)
-        self.serve_file.on_update(lambda _event: self._load_selected())
+        guard = self.host.guard
+        guard.add(self.serve_file, Choice("Serve file", lambda: [CURRENT, *self._serve_choices]))
+        guard.on_update(self.serve_file, lambda _event: self._load_selected())
 
     def add_folder(self, gui: Any) -> None:
         """The "Files" folder: save, download, upload, export, library serve."""
@@ -86,11 +150,18 @@ class FilesPanel:
                 hint="Raise each exceeded joint's effort limit to the plan's peak for this export (recorded in the entry)",
             )  # fmt: skip
             self.library_pick = gui.add_dropdown("Library serve", options=[NO_LIBRARY_SERVE], initial_value=NO_LIBRARY_SERVE)
-        self.save_button.on_click(lambda _event: self.save_seed())
-        self.download_button.on_click(lambda event: self.download(event.client))
-        self.upload_button.on_upload(lambda _event: self.upload(self.upload_button.value))
-        self.export_button.on_click(lambda _event: self.export())
-        self.library_pick.on_update(lambda _event: self.load_library_serve())
+        guard = self.host.guard
+        guard.add(self.save_button, Press("Save as seed"))
+        guard.add(self.download_button, Press("Download JSON"))
+        guard.add(self.upload_button, Upload("Upload JSON"))
+        guard.add(self.export_button, Press("Export to library"))
+        guard.add(self.export_beyond, Flag("Export beyond effort limits"))
+        guard.add(self.library_pick, Choice("Library serve", lambda: [NO_LIBRARY_SERVE, *self._library_ids]))
+        guard.on_update(self.save_button, lambda _event: self.save_seed())
+        guard.on_update(self.download_button, lambda event: self.download(event.client))
+        guard.on_update(self.upload_button, lambda _event: self.upload(self.upload_button.value))
+        guard.on_update(self.export_button, lambda _event: self.export())
+        guard.on_update(self.library_pick, lambda _event: self.load_library_serve())
         self.refresh_serve_files()
         self.refresh_library()
 
@@ -99,11 +170,15 @@ class FilesPanel:
     def refresh_serve_files(self) -> None:
         """List the saved seeds and the examples in the "Serve file" dropdown."""
         serves_dir = self.host.serves_dir
-        examples = [f"example/{k}" for k in list_serves(EXAMPLES_DIR) if serves_dir.resolve() != EXAMPLES_DIR.resolve()]
+        choices = {stem: (serves_dir, path) for stem, path in list_serves(serves_dir).items()}
+        if serves_dir.resolve() != EXAMPLES_DIR.resolve():
+            choices.update({f"example/{stem}": (EXAMPLES_DIR, path) for stem, path in list_serves(EXAMPLES_DIR).items()})
         self._quiet = True
         try:
-            self.serve_file.options = [CURRENT, *list_serves(serves_dir), *examples]
+            self._serve_choices = {**self._serve_choices, **choices}  # old and new entries valid while the list changes
+            self.serve_file.options = [CURRENT, *choices]
             self.serve_file.value = CURRENT
+            self._serve_choices = choices
         finally:
             self._quiet = False
 
@@ -111,12 +186,16 @@ class FilesPanel:
         if self._quiet or self.serve_file.value == CURRENT:
             return
         key = self.serve_file.value
-        folder, stem = (EXAMPLES_DIR, key.split("/", 1)[1]) if key.startswith("example/") else (self.host.serves_dir, key)
+        choice = self._serve_choices.get(key)
+        if choice is None:  # the guard lets only listed entries through
+            self.host.message(f"**Cannot load** `{shown(key)}`: not a listed serve file")
+            return
+        folder, path = choice
         try:
-            self.host.load(load_serve(folder / f"{stem}.json"))
-            self.host.message(f"Loaded `{stem}`.")
-        except StudioError as err:
-            self.host.message(f"**Cannot load {stem}:** {err}")
+            self.host.load(load_serve_in(folder, path))
+            self.host.message(f"Loaded `{shown(key)}`.")
+        except (StudioError, OSError) as err:
+            self.host.message(f"**Cannot load {shown(key)}:** {err}")
 
     def save_seed(self) -> None:
         """Save the controls' serve as ``<serves_dir>/<name>.json``."""
@@ -143,16 +222,18 @@ class FilesPanel:
         except StudioError as err:
             self.host.message(f"**Download failed:** {err}")
 
-    def upload(self, file: Any) -> None:
-        """Load an uploaded serve JSON (``file.name``, ``file.content`` bytes); bad files are reported."""
+    def upload(self, file: Any) -> bool:
+        """Load an uploaded serve JSON (``file.name``, ``file.content`` bytes) read by
+        :func:`read_upload`; a bad file is refused with a message naming it and the
+        problem. True if loaded."""
         try:
-            data = json.loads(file.content.decode("utf-8"))
-            self.host.load(serve_from_json(data, source=file.name))
-            self.host.message(f"Loaded upload `{file.name}`.")
-        except (UnicodeDecodeError, json.JSONDecodeError) as err:
-            self.host.message(f"**Upload rejected:** {file.name}: not valid JSON ({err})")
+            serve = read_upload(getattr(file, "name", None), getattr(file, "content", None))
         except StudioError as err:
             self.host.message(f"**Upload rejected:** {err}")
+            return False
+        self.host.load(serve)
+        self.host.message(f"Loaded upload `{shown(file.name)}`.")
+        return True
 
     # -- library -----------------------------------------------------------------------
 
@@ -165,10 +246,12 @@ class FilesPanel:
         except StudioError as err:
             entries = []
             self.host.message(f"**Library unreadable:** {err}")
-        self._library_ids = {f"{e.data['name']} [{e.id}]": e.id for e in entries}
+        ids = {shown(f"{e.data['name']} [{e.id}]"): e.id for e in entries}
         self._quiet = True
         try:
-            self.library_pick.options = [NO_LIBRARY_SERVE, *self._library_ids]
+            self._library_ids = {**self._library_ids, **ids}  # old and new entries valid while the list changes
+            self.library_pick.options = [NO_LIBRARY_SERVE, *ids]
+            self._library_ids = ids
             self.library_pick.value = NO_LIBRARY_SERVE
         finally:
             self._quiet = False
@@ -183,7 +266,7 @@ class FilesPanel:
             entry = ServeLibrary(self.host.library_dir).get(self._library_ids[self.library_pick.value])
             self.host.load(entry.serve)
             self.host.message(f"Loaded library serve `{entry.id}`.")
-        except (StudioError, KeyError) as err:
+        except (StudioError, KeyError, OSError) as err:
             self.host.message(f"**Cannot load library serve:** {err}")
 
     def show_library_entry(self, entry: Any) -> None:
@@ -236,10 +319,13 @@ class FilesPanel:
         library_dir = self.host.library_dir
         try:
             req = read_open_request(library_dir)
-        except StudioError as err:
-            if act:
-                self.host.message(f"**Open request ignored:** {err}")
+        except (StudioError, OSError) as err:
+            problem = f"**Open request ignored:** {err}"
+            if act and problem != self._open_problem:  # once per problem, not twice a second
+                self.host.message(problem)
+            self._open_problem = problem
             return False
+        self._open_problem = None
         if req is None or req.nonce == self._open_nonce:
             return False
         self._open_nonce = req.nonce
@@ -254,12 +340,32 @@ class FilesPanel:
         self.host.message(f"Opened library serve `{entry.id}` ({entry.data['name']}) from the dashboard.")
         return True
 
-    def watch_open_requests(self, period: float = 0.5) -> None:
-        """Poll for open requests every ``period`` [s] in a daemon thread."""
+    def poll_safely(self) -> bool:
+        """:meth:`poll_open_request` that never raises: anything a request file (or the
+        library it names) can do wrong ends in the message line. True if loaded."""
+        try:
+            return self.poll_open_request()
+        except Exception as err:  # noqa: BLE001 - the watcher outlives any bad file
+            problem = f"**Open request ignored:** {type(err).__name__}: {err}"
+            log.warning("studio: %s", problem)
+            if problem != self._open_problem:
+                self.host.message(problem)
+            self._open_problem = problem
+            return False
+
+    def watch_open_requests(self, period: float = 0.5) -> threading.Thread:
+        """Poll for open requests every ``period`` [s] in a daemon thread (until
+        :meth:`stop_watching`)."""
+        self._watch_stop.clear()
 
         def loop() -> None:
-            while True:
-                time.sleep(period)
-                self.poll_open_request()
+            while not self._watch_stop.wait(period):
+                self.poll_safely()
 
-        threading.Thread(target=loop, name="studio-open-requests", daemon=True).start()
+        thread = threading.Thread(target=loop, name="studio-open-requests", daemon=True)
+        thread.start()
+        return thread
+
+    def stop_watching(self) -> None:
+        """End the open-request watcher."""
+        self._watch_stop.set()

@@ -14,6 +14,7 @@ if TYPE_CHECKING:
     from studio.serve.efforts import EffortReport
     from studio.serve.evaluate import Evaluation, EvaluationContext
     from studio.serve.params import HandServe
+    from studio.ui.checks import InputGuard
     from studio.ui.controls import Controls
 
 
@@ -26,6 +27,8 @@ class StudioHost(Protocol):
     """Folder of hand-designed serves (seeds)."""
     library_dir: Path
     """Serve library folder."""
+    guard: InputGuard
+    """The checks of every control (each panel registers its controls' rules there)."""
 
     def load(self, serve: HandServe) -> None:
         """Put ``serve`` into the controls and evaluate it (one undo step)."""

@@ -4,11 +4,14 @@
 progress bar, a convergence plot (best reward so far against evaluations), a Stop button
 and a Markdown report; the job's result lands in the controls through the host's
 ``load``. Run folders go to ``<serves_dir>/../runs`` (``runs_dir``).
+
+Each number is checked against its own range on every change and again when a job
+starts (:data:`LIMITS`; :mod:`studio.ui.checks`): a value outside it (24 workers, 10^12
+tosses, NaN iterations) is refused with a message and starts nothing.
 """
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -20,9 +23,10 @@ import numpy as np
 
 from studio.errors import InvalidInputError, StudioError
 from studio.serve.evaluate import EvaluationContext
-from studio.serve.params import HandServe, ServeParams, load_serve
+from studio.serve.params import HandServe, ServeParams
+from studio.ui.checks import Choice, Flag, InputRefused, Number, Press, shown
 from studio.ui.controls import Controls
-from studio.ui.files import EXAMPLES_DIR, list_serves
+from studio.ui.files import EXAMPLES_DIR, list_serves, load_serve_in
 from studio.ui.host import StudioHost
 
 if TYPE_CHECKING:
@@ -30,6 +34,17 @@ if TYPE_CHECKING:
 
 NEW_RUN = "(new run)"
 """The Optimize tab's "run" choice that starts a new run."""
+
+LIMITS: dict[str, tuple[int, int, int]] = {
+    "iterations": (1, 100, 10),
+    "population": (2, 50, 20),
+    "workers": (1, 16, 2),
+    "tosses per evaluation": (1, 20, 5),
+    "seed": (0, 2**31 - 1, 0),
+    "robust candidates": (12, 10000, 600),
+}
+"""(lowest, highest, initial) of each number of the Optimize tab: at most 16 worker
+processes, 20 tosses per evaluation, 100 iterations, 10,000 robustness candidates."""
 
 
 class JobRunner:
@@ -56,18 +71,29 @@ class JobRunner:
             "HEBO over the genome for the current task and toss side, seeded with the current "
             "serve and the saved seeds of that side. Every evaluation is logged to the run folder."
         )
-        self.opt_iterations = gui.add_number("iterations", initial_value=10, min=1, max=100, step=1)
-        self.opt_population = gui.add_number("population", initial_value=20, min=2, max=50, step=1)
-        self.opt_workers = gui.add_number("workers", initial_value=2, min=1, max=16, step=1)
-        self.opt_tosses = gui.add_number("tosses per evaluation", initial_value=5, min=1, max=20, step=1)
-        self.opt_seed = gui.add_number("seed", initial_value=0, min=0, max=2**31 - 1, step=1)
+
+        def number(label: str, step: int = 1) -> Any:
+            lo, hi, initial = LIMITS[label]
+            handle = gui.add_number(label, initial_value=initial, min=lo, max=hi, step=step)
+            return self.host.guard.add(handle, Number(label, lo, hi, integer=True))
+
+        self.opt_iterations = number("iterations")
+        self.opt_population = number("population")
+        self.opt_workers = number("workers")
+        self.opt_tosses = number("tosses per evaluation")
+        self.opt_seed = number("seed")
         self.opt_run = gui.add_dropdown("run", options=[NEW_RUN], initial_value=NEW_RUN, hint="a new run, or an earlier run of this side and task to continue")
         self.opt_follow = gui.add_checkbox("show best so far", initial_value=True)
         self.opt_start = gui.add_button("Optimize from seeds")
-        self.rob_evaluations = gui.add_number("robust candidates", initial_value=600, min=12, max=10000, step=12)
+        self.rob_evaluations = number("robust candidates", step=12)
         self.rob_start = gui.add_button("Make robust", hint="local search around the current serve for one legal on more recorded tosses, keeping 90 % of its spin at the net")
         self.opt_stop = gui.add_button("Stop", disabled=True)
-        self.opt_progress = gui.add_progress_bar(0.0, animated=False)
+        guard = self.host.guard
+        guard.add(self.opt_run, Choice("run", lambda: [NEW_RUN, *self._runs]))
+        guard.add(self.opt_follow, Flag("show best so far"))
+        for button in (self.opt_start, self.rob_start, self.opt_stop):
+            guard.add(button, Press(button.label))
+        self.opt_progress = guard.add(gui.add_progress_bar(0.0, animated=False), Number("progress", 0.0, 100.0, "%", client_settable=False))
         self.opt_md = gui.add_markdown("")
         self.opt_plot = gui.add_uplot(
             data=(np.zeros(1), np.zeros(1)),
@@ -76,9 +102,9 @@ class JobRunner:
             scales={"x": {"time": False}},  # evaluations, not a date axis
             aspect=1.6,
         )
-        self.opt_start.on_click(lambda _event: self.start_optimization())
-        self.rob_start.on_click(lambda _event: self.start_robustify())
-        self.opt_stop.on_click(lambda _event: self.stop_event.set())
+        guard.on_update(self.opt_start, lambda _event: self.start_optimization())
+        guard.on_update(self.rob_start, lambda _event: self.start_robustify())
+        guard.on_update(self.opt_stop, lambda _event: self.stop_event.set())
 
     @property
     def busy(self) -> bool:
@@ -98,8 +124,8 @@ class JobRunner:
         for folder in (self.host.serves_dir, EXAMPLES_DIR):
             for path in list_serves(folder).values():
                 try:
-                    serve = load_serve(path)
-                except StudioError:
+                    serve = load_serve_in(folder, path)
+                except (StudioError, OSError):
                     continue
                 if serve.side == side and all(serve.params != s.params for s in seeds):
                     seeds.append(serve)
@@ -113,12 +139,14 @@ class JobRunner:
         side, task = self.host.side_and_task()
         runs, problems = list_runs(self.runs_dir, side=side, task=task)
         chosen = self._runs[self.opt_run.value].run_dir.name if self.opt_run.value in self._runs else None
-        self._runs = {r.label(): r for r in runs}
-        self.opt_run.options = [NEW_RUN, *self._runs]
+        listed = {shown(r.label()): r for r in runs}
+        self._runs = {**self._runs, **listed}  # old and new entries valid while the list changes
+        self.opt_run.options = [NEW_RUN, *listed]
         # the labels carry the progress: the choice follows its folder
-        self.opt_run.value = next((k for k, r in self._runs.items() if r.run_dir.name == chosen), NEW_RUN)
+        self.opt_run.value = next((k for k, r in listed.items() if r.run_dir.name == chosen), NEW_RUN)
+        self._runs = listed
         if problems and not self._busy:
-            self.opt_md.content = "**Unreadable run folders (not listed):**  \n" + "  \n".join(problems)
+            self.opt_md.content = shown("**Unreadable run folders (not listed):**  \n" + "  \n".join(problems))
 
     # -- busy flag ----------------------------------------------------------------------
 
@@ -142,23 +170,29 @@ class JobRunner:
 
     def start_optimization(self) -> None:
         """Start HEBO from the seeds (or continue the chosen run) in the background."""
+        guard = self.host.guard
         try:
             controls = self.host.controls()
             iterations, population, workers, tosses, seed = (
-                int(h.value) for h in (self.opt_iterations, self.opt_population, self.opt_workers, self.opt_tosses, self.opt_seed)
+                int(guard.check(h)) for h in (self.opt_iterations, self.opt_population, self.opt_workers, self.opt_tosses, self.opt_seed)
             )
-            if min(iterations, population, workers, tosses) < 1 or seed < 0:
-                raise InvalidInputError("iterations, population, workers and tosses must be >= 1 and the seed >= 0")
-            run = None if self.opt_run.value == NEW_RUN else self._runs.get(self.opt_run.value)
-            if self.opt_run.value != NEW_RUN and run is None:
-                raise InvalidInputError(f"run {self.opt_run.value!r} is no longer listed")
-        except (StudioError, TypeError, ValueError, OverflowError) as err:
-            self.opt_md.content = f"**Cannot start:** {err}"
+            choice = guard.check(self.opt_run)
+            run = None if choice == NEW_RUN else self._runs.get(choice)
+            if choice != NEW_RUN and run is None:
+                raise InvalidInputError(f"run {shown(choice)!r} is no longer listed")
+        except StudioError as err:
+            self._cannot_start(err)
             return
         if not self._claim():
             return
         args = (controls, iterations, population, workers, tosses, seed, run)
         threading.Thread(target=self._run_optimization, args=args, name="studio-optimizer", daemon=True).start()
+
+    def _cannot_start(self, err: StudioError) -> None:
+        """Say in the tab and in the message line why a job did not start."""
+        text = str(err).removeprefix("**Refused:** ") if isinstance(err, InputRefused) else shown(str(err))
+        self.opt_md.content = f"**Cannot start:** {text}"
+        self.host.message(f"**Cannot start:** {text}")
 
     def _progress(self, run_dir: Path, side: str, task: str, scale: Any) -> Callable[[int, int, float, ServeParams | None], None]:
         """The optimizer's progress callback: bar, plot, text, and the best serve so far
@@ -168,7 +202,7 @@ class JobRunner:
         last_best: list[ServeParams | None] = [None]
 
         def progress(done: int, total: int, best: float, params: ServeParams | None) -> None:
-            self.opt_progress.value = 100.0 * done / max(total, 1)
+            self.opt_progress.value = min(100.0, max(0.0, 100.0 * done / max(total, 1)))
             xs.append(float(done))
             ys.append(float(best))
             self.opt_plot.data = (np.array(xs), np.array(ys))
@@ -225,12 +259,9 @@ class JobRunner:
         (progress and Stop as an optimization); the result lands in the controls."""
         try:
             controls = self.host.controls()
-            value = self.rob_evaluations.value
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 1 and float(value).is_integer()):
-                raise InvalidInputError(f"robust candidates must be a whole number >= 1, got {value!r}")
-            evaluations = int(value)
+            evaluations = int(self.host.guard.check(self.rob_evaluations))
         except StudioError as err:
-            self.opt_md.content = f"**Cannot start:** {err}"
+            self._cannot_start(err)
             return
         if not self._claim():
             return
@@ -242,7 +273,7 @@ class JobRunner:
         start = time.perf_counter()
 
         def progress(done: int, total: int, best: RobustScore) -> None:
-            self.opt_progress.value = 100.0 * done / max(total, 1)
+            self.opt_progress.value = min(100.0, max(0.0, 100.0 * done / max(total, 1)))
             self.opt_md.content = f"robustify: {done} / {total} candidates, best legal on {best.legal}/{best.tosses} recorded tosses ({time.perf_counter() - start:.0f} s)"
 
         try:

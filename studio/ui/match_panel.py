@@ -12,6 +12,7 @@ from collections.abc import Callable
 from typing import Any
 
 from studio.errors import StudioError
+from studio.ui.checks import Choice, Flag, Press, Text, choices
 from studio.ui.host import StudioHost
 
 
@@ -43,9 +44,15 @@ class MatchPanel:
         self.match_receive = gui.add_button_group("opponent served", options=["robot won", "robot lost"])
         self.match_md = gui.add_markdown("_no serve selected yet_")
         self.match_stats_md = gui.add_markdown("")
-        self.match_next.on_click(lambda _event: self.next_serve())
-        self.match_robot.on_click(lambda event: self.record_point("robot", event.target.value))
-        self.match_receive.on_click(lambda event: self.record_point("opponent", event.target.value))
+        guard = host.guard
+        guard.add(self.match_next, Press("Next serve"))
+        guard.add(self.match_play, Flag("play it"))
+        guard.add(self.match_opponent, Text("opponent"))
+        guard.add(self.match_robot, Choice("robot served", choices("won", "ace", "lost")))
+        guard.add(self.match_receive, Choice("opponent served", choices("robot won", "robot lost")))
+        guard.on_update(self.match_next, lambda _event: self.next_serve())
+        guard.on_update(self.match_robot, lambda event: self.record_point("robot", event.target.value))
+        guard.on_update(self.match_receive, lambda event: self.record_point("opponent", event.target.value))
         self.refresh_stats()
 
     def next_serve(self) -> None:
@@ -77,6 +84,10 @@ class MatchPanel:
         from studio.library.match import record_point
         from studio.library.store import ServeLibrary
 
+        outcomes = {"robot": ("won", "ace", "lost"), "opponent": ("robot won", "robot lost")}
+        if outcome not in outcomes.get(server, ()):
+            self.match_md.content = f"**Point not recorded:** {server!r} served: the outcome must be one of {', '.join(outcomes.get(server, ()))}, got {outcome!r}"
+            return
         won = outcome in ("won", "ace", "robot won")
         try:
             points = record_point(

@@ -8,12 +8,16 @@ seam turns at the simulated spin, so slow motion shows the spin.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from contextlib import AbstractContextManager
 from typing import Any
 
+from studio.ui.checks import Choice, InputGuard, Number, Press, choices
 from studio.ui.scene import BALL_MAGNIFICATIONS, SceneFrame, StudioScene
+
+log = logging.getLogger("studio.ui")
 
 SPEEDS = ("0.02x", "0.05x", "0.1x", "0.25x", "0.5x", "1x")
 """Playback speeds (serve time per wall time)."""
@@ -37,24 +41,39 @@ class PlaybackPanel:
         scene: the scene to pose.
         lock: a re-entrant lock held while posing the scene (the worker replaces the
             frame under it; setting the time slider calls back synchronously).
+        guard: the studio's input checks (the time within the serve's span, a listed
+            speed and ball size); None: unchecked.
     """
 
-    def __init__(self, gui: Any, scene: StudioScene, lock: AbstractContextManager[Any]) -> None:
+    def __init__(self, gui: Any, scene: StudioScene, lock: AbstractContextManager[Any], guard: InputGuard | None = None) -> None:
         self.scene = scene
         self.lock = lock
         self.playing = False
         self.clock = 0.0
         """Current serve time shown [s]."""
+        self.span = (0.0, 2.5)
+        """The time slider's range: the shown serve's playback [s]."""
         with gui.add_folder("Playback"):
             self.play_button = gui.add_button("Play")
             self.slow_button = gui.add_button("Slow motion from contact", hint=f"play at {SLOW_MOTION} from just before the racket contact: the seam turns at the simulated spin")
             self.time = gui.add_slider("time [s]", min=0.0, max=2.5, step=0.001, initial_value=0.0)
             self.speed = gui.add_dropdown("speed", options=list(SPEEDS), initial_value="0.25x")
             self.ball_size = gui.add_dropdown("ball drawn", options=list(BALL_MAGNIFICATIONS), initial_value="x3", hint="the ball is 40 mm across; a bigger ball shows its seam turning")
-        self.play_button.on_click(lambda _event: self.toggle())
-        self.slow_button.on_click(lambda _event: self.slow_motion_from_contact())
-        self.time.on_update(lambda _event: self._scrubbed())
-        self.ball_size.on_update(lambda _event: self._resize_ball())
+        if guard is None:
+            self.play_button.on_click(lambda _event: self.toggle())
+            self.slow_button.on_click(lambda _event: self.slow_motion_from_contact())
+            self.time.on_update(lambda _event: self._scrubbed())
+            self.ball_size.on_update(lambda _event: self._resize_ball())
+        else:
+            guard.add(self.play_button, Press("Play"))
+            guard.add(self.slow_button, Press("Slow motion from contact"))
+            guard.add(self.time, Number("time", unit="s", span=lambda: self.span))
+            guard.add(self.speed, Choice("speed", choices(*SPEEDS)))
+            guard.add(self.ball_size, Choice("ball drawn", choices(*BALL_MAGNIFICATIONS)))
+            guard.on_update(self.play_button, lambda _event: self.toggle())
+            guard.on_update(self.slow_button, lambda _event: self.slow_motion_from_contact())
+            guard.on_update(self.time, lambda _event: self._scrubbed())
+            guard.on_update(self.ball_size, lambda _event: self._resize_ball())
         self._resize_ball()
 
     def _scrubbed(self) -> None:
@@ -102,8 +121,11 @@ class PlaybackPanel:
         pb = frame.playback
         if pb is None or not len(pb.t):
             return
-        self.time.max = float(pb.t[-1])
-        self.time.min = float(pb.t[0])
+        t0, t1 = float(pb.t[0]), float(pb.t[-1])
+        self.span = (min(t0, self.span[0]), max(t1, self.span[1]))  # both spans valid while the slider changes
+        self.time.max = t1
+        self.time.min = t0
+        self.span = (t0, t1)
         self.clock = min(max(self.clock, float(pb.t[0])), float(pb.t[-1]))
         self.time.value = self.clock
         self.scene.show_time(self.clock)
@@ -111,7 +133,8 @@ class PlaybackPanel:
     def advance(self, wall_dt: float) -> float:
         """Move the clock by ``wall_dt`` [s] of wall time at the chosen speed (wrapping to
         the start after the end) and pose the scene; returns the new serve time [s]."""
-        t_new = self.clock + wall_dt * float(self.speed.value.rstrip("x"))
+        speed = self.speed.value if self.speed.value in SPEEDS else "1x"
+        t_new = self.clock + wall_dt * float(speed.rstrip("x"))
         if t_new > self.time.max:
             t_new = float(self.time.min)
         with self.lock:  # clock and pose change together
@@ -130,6 +153,9 @@ class PlaybackPanel:
                 now = time.perf_counter()
                 dt, last = now - last, now
                 if self.playing:
-                    self.advance(dt)
+                    try:
+                        self.advance(dt)
+                    except Exception as err:  # noqa: BLE001 - the loop outlives a bad frame
+                        log.warning("studio: playback: %s: %s", type(err).__name__, err)
 
         threading.Thread(target=loop, name="studio-playback", daemon=True).start()
