@@ -80,7 +80,15 @@ class StudioApp:
             "Open in studio") twice a second; otherwise call ``files.poll_open_request()``.
     """
 
-    def __init__(self, server: Any, *, context: EvaluationContext, serves_dir: Path, library_dir: Path, watch_open_requests: bool = True) -> None:
+    def __init__(
+        self,
+        server: Any,
+        *,
+        context: EvaluationContext,
+        serves_dir: Path,
+        library_dir: Path,
+        watch_open_requests: bool = True,
+    ) -> None:
         self.server = server
         self.context = context
         self.serves_dir = serves_dir
@@ -101,7 +109,9 @@ class StudioApp:
         """The messages shown under the tabs, newest last (the latest 200)."""
         self._early_messages: list[str] = []
         self.guard = InputGuard(self.message)
-        self.worker: LatestWorker[Controls, Evaluation] = LatestWorker(self._compute, self._publish, name="studio-evaluator")
+        self.worker: LatestWorker[Controls, Evaluation] = LatestWorker(
+            self._compute, self._publish, name="studio-evaluator"
+        )
         self._build_gui()
         wire.gate(server, self.guard, self.message)
         self.load(self._first_serve())
@@ -125,7 +135,11 @@ class StudioApp:
                     problems.append(str(err) if isinstance(err, DataFileError) else f"{path}: {err}")
                     continue
                 if problems:
-                    self.message("**Skipped unreadable serve files:**  \n" + "  \n".join(problems[:10]) + (f"  \n... and {len(problems) - 10} more" if len(problems) > 10 else ""))
+                    self.message(
+                        "**Skipped unreadable serve files:**  \n"
+                        + "  \n".join(problems[:10])
+                        + (f"  \n... and {len(problems) - 10} more" if len(problems) > 10 else "")
+                    )
                 return serve
         if problems:
             self.message("**Skipped unreadable serve files:**  \n" + "  \n".join(problems[:10]))
@@ -160,7 +174,9 @@ class StudioApp:
         with tabs.add_tab("Optimize"):
             self.jobs = JobRunner(self, gui, self.runs_dir)
         with tabs.add_tab("Match"):
-            self.match = MatchPanel(self, gui, show_entry=self.files.show_library_entry, play=self.playback.play_from_start)
+            self.match = MatchPanel(
+                self, gui, show_entry=self.files.show_library_entry, play=self.playback.play_from_start
+            )
         self.message_md = gui.add_markdown("\n\n".join(self._early_messages))
         self._wire()
         self.files.refresh_serve_files()
@@ -282,7 +298,9 @@ class StudioApp:
 
     def _show_history(self) -> None:
         undo, redo = self.history.counts()
-        pinned = f"pinned A: `{self.pin.controls.serve.name}` (dashed path)" if self.pin is not None else "nothing pinned"
+        pinned = (
+            f"pinned A: `{self.pin.controls.serve.name}` (dashed path)" if self.pin is not None else "nothing pinned"
+        )
         self.overlay.note.content = f"{undo} undo / {redo} redo steps · {pinned}"
 
     # -- A/B ----------------------------------------------------------------------------
@@ -336,7 +354,9 @@ class StudioApp:
     # -- worker -----------------------------------------------------------------------
 
     def _compute(self, controls: Controls) -> Evaluation:
-        return evaluate_serve(controls.serve, self.context, task=controls.task, toss_sample=controls.toss_sample, mujoco=controls.mujoco)
+        return evaluate_serve(
+            controls.serve, self.context, task=controls.task, toss_sample=controls.toss_sample, mujoco=controls.mujoco
+        )
 
     def _publish(self, result: WorkResult[Controls, Evaluation]) -> None:
         if result.error is not None or result.value is None:
@@ -353,7 +373,9 @@ class StudioApp:
             self.last, self.last_efforts, self.last_controls = evaluation, efforts, result.inputs
             self.scene.show(frame)
             self.status_md.content = status + f"\n\n_evaluated in {1000 * result.seconds:.0f} ms_"
-            self.checks_md.content = checks + (f"\n\n{efforts.headline()} (table in Metrics)" if efforts is not None else "")
+            self.checks_md.content = checks + (
+                f"\n\n{efforts.headline()} (table in Metrics)" if efforts is not None else ""
+            )
             self.metrics_md.content = metrics + (f"\n\n{efforts.markdown()}" if efforts is not None else "")
             self._show_numbers(result.seconds)
             self.playback.new_frame(frame)
@@ -364,7 +386,11 @@ class StudioApp:
         """The overlay's table for ``last`` (and the pin), with the lock held."""
         if self.last is None:
             return
-        toss = "mean toss" if self.last_controls is None or self.last_controls.toss_sample is None else f"recorded toss {self.last_controls.toss_sample + 1}"
+        toss = (
+            "mean toss"
+            if self.last_controls is None or self.last_controls.toss_sample is None
+            else f"recorded toss {self.last_controls.toss_sample + 1}"
+        )
         timing = f", evaluated in {1000 * seconds:.0f} ms" if seconds is not None else ""
         pinned = serve_numbers(self.pin.evaluation, self.pin.efforts) if self.pin is not None else None
         self.overlay.show(
@@ -379,7 +405,9 @@ class StudioApp:
         return default_view(path)
 
 
-def run_app(*, host: str = "127.0.0.1", port: int = 8080, serves_dir: str | None = None, library_dir: str | None = None) -> None:
+def run_app(
+    *, host: str = "127.0.0.1", port: int = 8080, serves_dir: str | None = None, library_dir: str | None = None
+) -> None:
     """Start the studio and serve until interrupted."""
     import viser
 

@@ -70,7 +70,15 @@ def robot_points() -> npt.NDArray[np.float64]:
     return np.array([(x, y, z) for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])], dtype=float)
 
 
-def fit_view(points: npt.ArrayLike, *, direction: tuple[float, float, float] = DEFAULT_DIRECTION, fov: float = FOV, aspect: float = ASPECT, margin: float = 1.05, name: str = "default") -> CameraView:
+def fit_view(
+    points: npt.ArrayLike,
+    *,
+    direction: tuple[float, float, float] = DEFAULT_DIRECTION,
+    fov: float = FOV,
+    aspect: float = ASPECT,
+    margin: float = 1.05,
+    name: str = "default",
+) -> CameraView:
     """A camera looking along ``-direction`` at the centre of ``points`` (N, 3) [m], far
     enough that all of them are inside the view cone (vertical ``fov`` [rad]; the
     horizontal one from ``aspect``), with ``margin`` (> 1: room around them)."""

@@ -115,7 +115,9 @@ class Number:
         if not math.isfinite(x):
             return why
         lo, hi = self.bounds()
-        slack = 0.0 if self.integer else 1e-9 * max(1.0, abs(lo), abs(hi))  # a slider step lands a rounding error off an end
+        slack = (
+            0.0 if self.integer else 1e-9 * max(1.0, abs(lo), abs(hi))
+        )  # a slider step lands a rounding error off an end
         if not lo - slack <= x <= hi + slack:
             return why
         if self.integer and not x.is_integer():
@@ -252,7 +254,11 @@ class InputGuard:
             self._rules[uuid] = rule
             self._last[uuid] = handle.value
             self._callbacks[uuid] = []
-        register = getattr(handle, "on_upload", None) or getattr(handle, "on_click", None) or getattr(handle, "on_update", None)
+        register = (
+            getattr(handle, "on_upload", None)
+            or getattr(handle, "on_click", None)
+            or getattr(handle, "on_update", None)
+        )
         if register is not None:  # a progress bar has no callbacks (and takes no client values)
             register(lambda event, uuid=uuid: self._changed(uuid, event))
         return handle
@@ -289,21 +295,31 @@ class InputGuard:
         handle = self._handles.get(uuid)
         rule = self._rules.get(uuid)
         if handle is None or rule is None:
-            self._report(f"**Refused:** a browser set a control the studio takes no input from (id `{value_text(uuid)}`).")
+            self._report(
+                f"**Refused:** a browser set a control the studio takes no input from (id `{value_text(uuid)}`)."
+            )
             return False
         if not isinstance(updates, dict) or set(updates) != {"value"}:
             keys = sorted(shown(str(k)) for k in updates) if isinstance(updates, dict) else []
-            self._report(f"**Refused:** a browser tried to change {', '.join(keys) or 'nothing'} of {shown(rule.label)}: only a control's value can be set.")
+            self._report(
+                f"**Refused:** a browser tried to change {', '.join(keys) or 'nothing'} of {shown(rule.label)}: only a control's value can be set."
+            )
             return False
         value = updates["value"]
         if not rule.client_settable:
-            fixed = "set only by uploading a file" if isinstance(rule, Upload) else "shown by the studio, not set by a browser"
+            fixed = (
+                "set only by uploading a file"
+                if isinstance(rule, Upload)
+                else "shown by the studio, not set by a browser"
+            )
             self._report(refusal_message(rule.label, value, fixed, has_kept=False))
             return False
         why = rule.refusal(value)
         current = handle.value
         if why is not None:
-            self._report(refusal_message(rule.label, value, why, current, has_kept=not isinstance(rule, (Press, Upload))))
+            self._report(
+                refusal_message(rule.label, value, why, current, has_kept=not isinstance(rule, (Press, Upload)))
+            )
             if self.resend is not None and not handle._impl.is_button:
                 self.resend(handle)  # the sender's widget shows the kept value again
             return False

@@ -47,7 +47,9 @@ class Controls:
 
 def fallback_serve() -> HandServe:
     """The serve shown when no serve file is found: a plain push at 4 m/s."""
-    return HandServe(name="my serve", side="right", params=ServeParams(tau=0.8, velocity=(4.0, 0.0, 0.0), yaw=math.pi / 2, roll=0.0))
+    return HandServe(
+        name="my serve", side="right", params=ServeParams(tau=0.8, velocity=(4.0, 0.0, 0.0), yaw=math.pi / 2, roll=0.0)
+    )
 
 
 def toss_label(sample: int | None) -> str:
@@ -82,13 +84,17 @@ class ServeForm:
         self.task = gui.add_dropdown("Task", options=list(TASKS), initial_value="topspin_velocity")
         with gui.add_folder("Contact"):
             self.tau = gui.add_slider("tau [s]", min=b.tau[0], max=b.tau[1], step=0.005, initial_value=0.8)
-            self.t_return = gui.add_slider("return [s]", min=b.t_return[0], max=b.t_return[1], step=0.01, initial_value=0.7)
+            self.t_return = gui.add_slider(
+                "return [s]", min=b.t_return[0], max=b.t_return[1], step=0.01, initial_value=0.7
+            )
         with gui.add_folder("Racket velocity [m/s]"):
             self.vx = gui.add_slider("v_x", min=-b.velocity[0], max=b.velocity[0], step=0.05, initial_value=4.0)
             self.vy = gui.add_slider("v_y", min=-b.velocity[1], max=b.velocity[1], step=0.05, initial_value=0.0)
             self.vz = gui.add_slider("v_z", min=-b.velocity[2], max=b.velocity[2], step=0.05, initial_value=0.0)
         with gui.add_folder("Racket normal [deg]"):
-            self.yaw = gui.add_slider("yaw", min=math.degrees(b.yaw[0]), max=math.degrees(b.yaw[1]), step=0.5, initial_value=90.0)
+            self.yaw = gui.add_slider(
+                "yaw", min=math.degrees(b.yaw[0]), max=math.degrees(b.yaw[1]), step=0.5, initial_value=90.0
+            )
             self.roll = gui.add_slider("roll", min=-180.0, max=180.0, step=0.5, initial_value=0.0)
         with gui.add_folder("Contact offset [m]", expand_by_default=False):
             self.dpx = gui.add_slider("dp_x", min=-b.offset, max=b.offset, step=0.002, initial_value=0.0)
@@ -132,7 +138,25 @@ class ServeForm:
     @property
     def inputs(self) -> tuple[Any, ...]:
         """Every handle whose change re-evaluates the serve."""
-        return (self.side, self.toss, self.task, self.tau, self.t_return, self.vx, self.vy, self.vz, self.yaw, self.roll, self.dpx, self.dpy, self.dpz, self.limit_speed, self.limit_accel, self.limit_jerk, self.mujoco)
+        return (
+            self.side,
+            self.toss,
+            self.task,
+            self.tau,
+            self.t_return,
+            self.vx,
+            self.vy,
+            self.vz,
+            self.yaw,
+            self.roll,
+            self.dpx,
+            self.dpy,
+            self.dpz,
+            self.limit_speed,
+            self.limit_accel,
+            self.limit_jerk,
+            self.mujoco,
+        )
 
     def _checked(self, key: str) -> Any:
         """The value of control ``key`` if its rule accepts it, else InvalidInputError
@@ -141,13 +165,29 @@ class ServeForm:
         value = handle.value
         why = rule.refusal(value)
         if why is not None:
-            raise InvalidInputError(refusal_message(rule.label, value, why, has_kept=False).removeprefix("**Refused:** "))
+            raise InvalidInputError(
+                refusal_message(rule.label, value, why, has_kept=False).removeprefix("**Refused:** ")
+            )
         return value
 
     def _numbers(self) -> dict[str, float]:
         """The numeric controls by name; InvalidInputError names one that is not a finite
         number within its slider's range."""
-        keys = ("tau", "return", "v_x", "v_y", "v_z", "yaw", "roll", "dp_x", "dp_y", "dp_z", "speed limit", "acceleration limit", "jerk limit")
+        keys = (
+            "tau",
+            "return",
+            "v_x",
+            "v_y",
+            "v_z",
+            "yaw",
+            "roll",
+            "dp_x",
+            "dp_y",
+            "dp_z",
+            "speed limit",
+            "acceleration limit",
+            "jerk limit",
+        )
         return {k: float(self._checked(k)) for k in keys}
 
     def read(self) -> Controls:
@@ -188,7 +228,11 @@ class ServeForm:
         for handle, value in pairs:
             handle.value = float(np.clip(value, handle.min, handle.max))
         scale = serve.limit_scale  # the sliders span LIMIT_SCALE_RANGE: every valid scale fits
-        self.limit_speed.value, self.limit_accel.value, self.limit_jerk.value = scale.velocity, scale.acceleration, scale.jerk
+        self.limit_speed.value, self.limit_accel.value, self.limit_jerk.value = (
+            scale.velocity,
+            scale.acceleration,
+            scale.jerk,
+        )
 
     def write_all(self, controls: Controls, n_tosses: int) -> None:
         """Put a whole snapshot back (undo, redo, restore): serve, task, toss, MuJoCo."""

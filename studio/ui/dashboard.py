@@ -39,19 +39,19 @@ from __future__ import annotations
 import io
 import json
 import math
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
 import pandas as pd
 import panel as pn
-from bokeh.models import ColumnDataSource, NumberFormatter, Range1d
+from bokeh.models import ColumnDataSource, Range1d
+from bokeh.models.widgets.tables import NumberFormatter
 from bokeh.plotting import figure
 
 from studio.errors import StudioError
-from studio.library.selection import entry_cluster, net_state, spin_cluster
+from studio.library.selection import entry_cluster, net_state, spin_cluster  # noqa: F401 - re-exported
 from studio.library.store import INDEX_NAME, LibraryEntry, ServeLibrary
 from studio.physics.court import DEFAULT_COURT
 from studio.serve.params import LimitScale
@@ -70,9 +70,28 @@ CLUSTER_COLORS = {
 """Colour of each cluster in the scatter and the table."""
 ALL = "all"
 """Filter value that keeps every row."""
+AlertType = Literal["primary", "secondary", "success", "danger", "warning", "info", "light", "dark"]
+"""A panel ``Alert``'s ``alert_type`` (the status line's kind)."""
 SCATTER_AXES = ("horizontal speed vs total spin", "topspin vs sidespin")
 """The two scatter views."""
-COLUMNS = ("name", "side", "task", "legal", "reward", "cluster", "speed_h", "spin", "topspin", "sidespin", "cork", "clearance", "limits", "provenance", "created", "id")
+COLUMNS = (
+    "name",
+    "side",
+    "task",
+    "legal",
+    "reward",
+    "cluster",
+    "speed_h",
+    "spin",
+    "topspin",
+    "sidespin",
+    "cork",
+    "clearance",
+    "limits",
+    "provenance",
+    "created",
+    "id",
+)
 """Table columns (``speed_h`` [m/s] and spins [rad/s] at the net crossing, ``clearance`` [m],
 ``limits``: the dynamic limit expansion the serve needs, :func:`limits_text`)."""
 TITLES = {
@@ -125,7 +144,9 @@ def library_table(entries: list[LibraryEntry]) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=list(COLUMNS))
 
 
-def filter_table(df: pd.DataFrame, *, side: str = ALL, task: str = ALL, legal: str = ALL, cluster: str = ALL) -> pd.DataFrame:
+def filter_table(
+    df: pd.DataFrame, *, side: str = ALL, task: str = ALL, legal: str = ALL, cluster: str = ALL
+) -> pd.DataFrame:
     """Rows matching the filters (``ALL`` keeps everything; ``legal`` is ``"legal"``/``"illegal"``)."""
     mask = np.ones(len(df), dtype=bool)
     if side != ALL:
@@ -164,13 +185,27 @@ def joint_plot(arrays: dict[str, Any], *, title: str = "joint commands u(t)") ->
     names = [str(n) for n in np.asarray(arrays.get("joint_names", []))] or [f"joint {i}" for i in range(u.shape[1])]
     t_toss = float(np.asarray(arrays.get("t_toss", 0.0)))
     clock = "from the preparation's start; the toss starts at the dashed line" if t_toss > 0 else "toss clock"
-    fig = figure(title=title, height=320, sizing_mode="stretch_width", x_axis_label=f"t [s] ({clock})", y_axis_label="u [m or rad]")
+    fig = figure(
+        title=title,
+        height=320,
+        sizing_mode="stretch_width",
+        x_axis_label=f"t [s] ({clock})",
+        y_axis_label="u [m or rad]",
+    )
     for i in range(u.shape[1]):
-        fig.line(t, u[:, i], color=Category10[10][i % 10], line_width=2, legend_label=names[i] if i < len(names) else f"joint {i}")
+        fig.line(
+            t,
+            u[:, i],
+            color=Category10[10][i % 10],
+            line_width=2,
+            legend_label=names[i] if i < len(names) else f"joint {i}",
+        )
     if t_toss > 0:
-        from bokeh.models import Span
+        from bokeh.models.annotations.geometry import Span
 
-        fig.add_layout(Span(location=t_toss, dimension="height", line_dash="dashed", line_color="#4a5568", line_width=1))
+        fig.add_layout(
+            Span(location=t_toss, dimension="height", line_dash="dashed", line_color="#4a5568", line_width=1)
+        )
     fig.legend.click_policy = "hide"
     fig.legend.label_text_font_size = "8pt"
     fig.add_layout(fig.legend[0], "right")
@@ -188,14 +223,21 @@ def ball_path_plot(arrays: dict[str, Any], *, view: str) -> Any:
     j = 1 if view == "top" else 2
     label = "y [m]" if view == "top" else "z [m]"
     title = "ball path, top view" if view == "top" else "ball path, side view"
-    fig = figure(title=title, height=300, sizing_mode="stretch_width", x_axis_label="x [m] (towards receiver)", y_axis_label=label, match_aspect=True)
+    fig = figure(
+        title=title,
+        height=300,
+        sizing_mode="stretch_width",
+        x_axis_label="x [m] (towards receiver)",
+        y_axis_label=label,
+        match_aspect=True,
+    )
     for x, y, color in _table_outline(view):
         fig.line(x, y, color=color, line_width=3)
     if len(p):
         fig.line(p[:, 0], p[:, j], color="#e53e3e", line_width=2, legend_label="ball")
         fig.scatter(p[[0, -1], 0], p[[0, -1], j], size=7, color=["#38a169", "#000000"])
     hx = DEFAULT_COURT.length / 2
-    fig.x_range = Range1d(-hx - 0.6, hx + 0.3)
+    fig.x_range = Range1d(start=-hx - 0.6, end=hx + 0.3)
     return fig
 
 
@@ -217,29 +259,77 @@ def _reference_layer(fig: Any, reference: ReferenceServes | None, xy: Any) -> No
         x, y = xy(rows)
         src = ColumnDataSource({"x": x, "y": y, "name": [f"{who}: {p} {r}" for p, r in zip(rows["player"], rows["rally"])], "cluster": [f"reference ({who})"] * len(rows),
                                 **{c: rows[c].to_numpy(float) for c in ("speed_h", "spin", "topspin", "sidespin")}})  # fmt: skip
-        fig.scatter("x", "y", source=src, marker=style["marker"], size=7, color=style["color"], alpha=0.45, legend_label=f"{style['label']}: {len(rows)}")
+        fig.scatter(
+            "x",
+            "y",
+            source=src,
+            marker=style["marker"],
+            size=7,
+            color=style["color"],
+            alpha=0.45,
+            legend_label=f"{style['label']}: {len(rows)}",
+        )
 
 
-def spin_scatter(df: pd.DataFrame, *, axes: str = SCATTER_AXES[0], selected_id: str | None = None, reference: ReferenceServes | None = None) -> Any:
+def spin_scatter(
+    df: pd.DataFrame,
+    *,
+    axes: str = SCATTER_AXES[0],
+    selected_id: str | None = None,
+    reference: ReferenceServes | None = None,
+) -> Any:
     """Bokeh scatter of the net-crossing state of the rows of ``df``, coloured by cluster,
     over the ``reference`` serves (if any)."""
     if axes == SCATTER_AXES[0]:
         xcol, ycol, xl, yl = "speed_h", "spin", "horizontal speed at the net [m/s]", "total spin at the net [rad/s]"
     else:
-        xcol, ycol, xl, yl = "topspin", "sidespin", "topspin at the net [rad/s] (< 0: backspin)", "sidespin at the net [rad/s]"
-    fig = figure(title=f"ball at the net crossing: {axes}", height=360, sizing_mode="stretch_width", x_axis_label=xl, y_axis_label=yl, tools="pan,wheel_zoom,box_zoom,reset,hover")
-    fig.hover.tooltips = [("serve", "@name"), ("cluster", "@cluster"), (xcol, f"@{xcol}{{0.00}}"), (ycol, f"@{ycol}{{0.0}}")]
+        xcol, ycol, xl, yl = (
+            "topspin",
+            "sidespin",
+            "topspin at the net [rad/s] (< 0: backspin)",
+            "sidespin at the net [rad/s]",
+        )
+    fig = figure(
+        title=f"ball at the net crossing: {axes}",
+        height=360,
+        sizing_mode="stretch_width",
+        x_axis_label=xl,
+        y_axis_label=yl,
+        tools="pan,wheel_zoom,box_zoom,reset,hover",
+    )
+    fig.hover.tooltips = [
+        ("serve", "@name"),
+        ("cluster", "@cluster"),
+        (xcol, f"@{xcol}{{0.00}}"),
+        (ycol, f"@{ycol}{{0.0}}"),
+    ]
     _reference_layer(fig, reference, lambda rows: (rows[xcol].to_numpy(float), rows[ycol].to_numpy(float)))
     ok = df[np.isfinite(df[xcol].to_numpy(dtype=float)) & np.isfinite(df[ycol].to_numpy(dtype=float))]
     for cluster in CLUSTERS:
         sub = ok[ok["cluster"] == cluster]
         if len(sub):
-            src = ColumnDataSource({"x": sub[xcol].to_numpy(float), "y": sub[ycol].to_numpy(float), "name": sub["name"].tolist(), "cluster": sub["cluster"].tolist(), xcol: sub[xcol].to_numpy(float), ycol: sub[ycol].to_numpy(float)})
+            src = ColumnDataSource(
+                {
+                    "x": sub[xcol].to_numpy(float),
+                    "y": sub[ycol].to_numpy(float),
+                    "name": sub["name"].tolist(),
+                    "cluster": sub["cluster"].tolist(),
+                    xcol: sub[xcol].to_numpy(float),
+                    ycol: sub[ycol].to_numpy(float),
+                }
+            )
             fig.scatter("x", "y", source=src, size=11, color=CLUSTER_COLORS[cluster], legend_label=cluster, alpha=0.85)
     if selected_id is not None:
         sel = ok[ok["id"] == selected_id]
         if len(sel):
-            fig.scatter(sel[xcol].to_numpy(float), sel[ycol].to_numpy(float), size=20, fill_alpha=0.0, line_color="black", line_width=2)
+            fig.scatter(
+                sel[xcol].to_numpy(float),
+                sel[ycol].to_numpy(float),
+                size=20,
+                fill_alpha=0.0,
+                line_color="black",
+                line_width=2,
+            )
     _legend_outside(fig)
     return fig
 
@@ -250,18 +340,35 @@ POLAR_SPOKES = ((0.0, "topspin"), (90.0, "sidespin +"), (180.0, "backspin"), (27
 
 def _polar_grid(fig: Any, r_max: float) -> None:
     """Rings every 100 rad/s up to ``r_max`` and the labelled spokes."""
-    from bokeh.models import Label
+    from bokeh.models.annotations.labels import Label
 
     theta = np.linspace(0.0, 2.0 * np.pi, 181)
     for r in np.arange(100.0, r_max + 1e-9, 100.0):
         fig.line(r * np.cos(theta), r * np.sin(theta), color="#cbd5e0", line_width=1)
-        fig.add_layout(Label(x=r * np.cos(np.radians(60)), y=r * np.sin(np.radians(60)), text=f"{r:.0f}", text_font_size="7pt", text_color="#718096"))
+        fig.add_layout(
+            Label(
+                x=r * np.cos(np.radians(60)),
+                y=r * np.sin(np.radians(60)),
+                text=f"{r:.0f}",
+                text_font_size="7pt",
+                text_color="#718096",
+            )
+        )
     for deg in np.arange(0.0, 360.0, 45.0):
         a = np.radians(deg)
         fig.line([0.0, r_max * np.cos(a)], [0.0, r_max * np.sin(a)], color="#e2e8f0", line_width=1)
     for deg, text in POLAR_SPOKES:
         a = np.radians(deg)
-        fig.add_layout(Label(x=1.04 * r_max * np.cos(a), y=1.04 * r_max * np.sin(a), text=text, text_font_size="8pt", text_align="center", text_baseline="middle"))
+        fig.add_layout(
+            Label(
+                x=1.04 * r_max * np.cos(a),
+                y=1.04 * r_max * np.sin(a),
+                text=text,
+                text_font_size="8pt",
+                text_align="center",
+                text_baseline="middle",
+            )
+        )
 
 
 def spin_polar(df: pd.DataFrame, *, selected_id: str | None = None, reference: ReferenceServes | None = None) -> Any:
@@ -272,7 +379,12 @@ def spin_polar(df: pd.DataFrame, *, selected_id: str | None = None, reference: R
     colour, the ``reference`` serves marked apart."""
     fig = figure(title="spin direction at the net: angle atan2(side, top), radius |(top, side)| [rad/s]", height=380, sizing_mode="stretch_width", match_aspect=True,
                  tools="pan,wheel_zoom,reset,hover", x_axis_label="topspin [rad/s] (< 0: backspin)", y_axis_label="sidespin [rad/s]")  # fmt: skip
-    fig.hover.tooltips = [("serve", "@name"), ("cluster", "@cluster"), ("topspin", "@topspin{0}"), ("sidespin", "@sidespin{0}")]
+    fig.hover.tooltips = [
+        ("serve", "@name"),
+        ("cluster", "@cluster"),
+        ("topspin", "@topspin{0}"),
+        ("sidespin", "@sidespin{0}"),
+    ]
     ok = df[np.isfinite(df["topspin"].to_numpy(dtype=float)) & np.isfinite(df["sidespin"].to_numpy(dtype=float))]
     radii = [np.hypot(ok["topspin"].to_numpy(float), ok["sidespin"].to_numpy(float))]
     if reference is not None and len(reference.table):
@@ -289,8 +401,17 @@ def spin_polar(df: pd.DataFrame, *, selected_id: str | None = None, reference: R
     if selected_id is not None:
         sel = ok[ok["id"] == selected_id]
         if len(sel):
-            fig.scatter(sel["topspin"].to_numpy(float), sel["sidespin"].to_numpy(float), size=20, fill_alpha=0.0, line_color="black", line_width=2)
-    fig.scatter([-1.15 * r_max, 1.15 * r_max], [-1.15 * r_max, 1.15 * r_max], alpha=0.0)  # room for the spoke labels (match_aspect keeps the rings round)
+            fig.scatter(
+                sel["topspin"].to_numpy(float),
+                sel["sidespin"].to_numpy(float),
+                size=20,
+                fill_alpha=0.0,
+                line_color="black",
+                line_width=2,
+            )
+    fig.scatter(
+        [-1.15 * r_max, 1.15 * r_max], [-1.15 * r_max, 1.15 * r_max], alpha=0.0
+    )  # room for the spoke labels (match_aspect keeps the rings round)
     _legend_outside(fig)
     return fig
 
@@ -350,21 +471,37 @@ def run_histories(entries: list[LibraryEntry], runs_dir: Path) -> tuple[dict[str
     return out, errors
 
 
-def convergence_plot(histories: dict[str, Any], *, names: dict[str, str] | None = None, selected_id: str | None = None) -> Any:
+def convergence_plot(
+    histories: dict[str, Any], *, names: dict[str, str] | None = None, selected_id: str | None = None
+) -> Any:
     """Bokeh figure: best reward so far vs evaluations, one grey line per run; the
     selected serve's run in colour with each evaluation's reward (legal: green, not: red)."""
-    fig = figure(height=320, sizing_mode="stretch_width", title="HEBO convergence: best reward so far", x_axis_label="evaluations", y_axis_label="reward F")
+    fig = figure(
+        height=320,
+        sizing_mode="stretch_width",
+        title="HEBO convergence: best reward so far",
+        x_axis_label="evaluations",
+        y_axis_label="reward F",
+    )
     names = names or {}
     for sid, h in histories.items():
         if sid == selected_id or not len(h.reward):
             continue
-        fig.line(np.arange(1, len(h.reward) + 1), h.best_so_far, color="#a0aec0", line_width=1, alpha=0.8)
+        fig.line(np.arange(1, len(h.reward) + 1, dtype=float), h.best_so_far, color="#a0aec0", line_width=1, alpha=0.8)
     h = histories.get(selected_id) if selected_id is not None else None
-    if h is not None and len(h.reward):
-        n = np.arange(1, len(h.reward) + 1)
+    if h is not None and selected_id is not None and len(h.reward):
+        n = np.arange(1, len(h.reward) + 1, dtype=float)
         fig.scatter(n[h.legal], h.reward[h.legal], size=3, color="#2ca02c", alpha=0.5, legend_label="legal evaluation")
-        fig.scatter(n[~h.legal], h.reward[~h.legal], size=3, color="#d62728", alpha=0.3, legend_label="illegal / failed")
-        fig.line(n, h.best_so_far, color="#1f2937", line_width=2.5, legend_label=f"best so far: {names.get(selected_id, selected_id)}")
+        fig.scatter(
+            n[~h.legal], h.reward[~h.legal], size=3, color="#d62728", alpha=0.3, legend_label="illegal / failed"
+        )
+        fig.line(
+            n,
+            h.best_so_far,
+            color="#1f2937",
+            line_width=2.5,
+            legend_label=f"best so far: {names.get(selected_id, selected_id)}",
+        )
         fig.legend.location = "bottom_right"
     return fig
 
@@ -373,11 +510,15 @@ def convergence_text(histories: dict[str, Any], errors: list[str], *, selected_i
     """Markdown summary under the convergence plot."""
     lines = []
     if not histories:
-        lines.append(f"No HEBO run logs for these serves under `{runs_dir}` (serves from `serve-studio optimize` or `train` link their run folder).")
+        lines.append(
+            f"No HEBO run logs for these serves under `{runs_dir}` (serves from `serve-studio optimize` or `train` link their run folder)."
+        )
     else:
         runs = {id(h): h for h in histories.values()}
         best = [float(h.best_so_far[-1]) for h in runs.values() if len(h.reward)]
-        lines.append(f"{len(runs)} runs; final best training reward median {np.median(best):+.3f} (min {min(best):+.3f}, max {max(best):+.3f}).")
+        lines.append(
+            f"{len(runs)} runs; final best training reward median {np.median(best):+.3f} (min {min(best):+.3f}, max {max(best):+.3f})."
+        )
         h = histories.get(selected_id) if selected_id is not None else None
         if h is not None and len(h.reward):
             k = int(np.argmax(h.reward))
@@ -406,7 +547,14 @@ class LibraryDashboard:
             the library's (:mod:`studio.ui.reference`); None: none.
     """
 
-    def __init__(self, library_dir: str | Path, *, studio_url: str | None = None, runs_dir: str | Path = "runs", reference: str | Path | None = None) -> None:
+    def __init__(
+        self,
+        library_dir: str | Path,
+        *,
+        studio_url: str | None = None,
+        runs_dir: str | Path = "runs",
+        reference: str | Path | None = None,
+    ) -> None:
         self.library = ServeLibrary(library_dir)
         self.reference, reference_text = load_reference(reference)
         self.studio_url = studio_url
@@ -438,12 +586,17 @@ class LibraryDashboard:
                 "legal": {"type": "tickCross"},
                 "reward": NumberFormatter(format="0.000"),
                 "clearance": NumberFormatter(format="0.000"),
-                **{k: NumberFormatter(format="0.00" if k == "speed_h" else "0") for k in ("speed_h", "spin", "topspin", "sidespin", "cork")},
+                **{
+                    k: NumberFormatter(format="0.00" if k == "speed_h" else "0")
+                    for k in ("speed_h", "spin", "topspin", "sidespin", "cork")
+                },
             },
         )
         self.scatter = pn.pane.Bokeh(spin_scatter(self.table, reference=self.reference), sizing_mode="stretch_width")
         self.polar = pn.pane.Bokeh(spin_polar(self.table, reference=self.reference), sizing_mode="stretch_width")
-        self.reference_info = pn.pane.Markdown(reference_text, sizing_mode="stretch_width", visible=bool(reference_text))
+        self.reference_info = pn.pane.Markdown(
+            reference_text, sizing_mode="stretch_width", visible=bool(reference_text)
+        )
         self.detail_title = pn.pane.Markdown("", sizing_mode="stretch_width")
         self.detail_error = pn.pane.Alert("", alert_type="danger", visible=False, sizing_mode="stretch_width")
         self.joints = pn.pane.Bokeh(None, sizing_mode="stretch_width")
@@ -453,9 +606,16 @@ class LibraryDashboard:
         self.top_view = pn.pane.Bokeh(None, sizing_mode="stretch_width")
         self.side_view = pn.pane.Bokeh(None, sizing_mode="stretch_width")
         self.studio_link = pn.pane.Markdown("", sizing_mode="stretch_width")
-        self.download = pn.widgets.FileDownload(callback=self._serve_json, filename="serve.json", label="Download serve JSON", color="success", width=220, disabled=True)
+        self.download = pn.widgets.FileDownload(
+            callback=self._serve_json,
+            filename="serve.json",
+            label="Download serve JSON",
+            color="success",
+            width=220,
+            disabled=True,
+        )
         self.open_button = pn.widgets.Button(label="Open in studio", color="primary", width=160, disabled=True)
-        self.open_button.on_click(lambda _event: self.open_in_studio())
+        self.open_button.on_click(self._on_open_click)
         if studio_url:  # the browser side: bring up the studio tab (named, so it is reused)
             self.open_button.js_on_click(args={"url": studio_url}, code="window.open(url, 'serve-studio')")
         self.selected_id: str | None = None
@@ -474,7 +634,14 @@ class LibraryDashboard:
             self.tabulator,
             pn.Row(
                 pn.Column(self.axes, self.scatter, self.polar, self.reference_info, sizing_mode="stretch_width"),
-                pn.Column(self.detail_title, self.detail_error, pn.Row(self.open_button, self.download, self.studio_link, sizing_mode="stretch_width"), self.top_view, self.side_view, sizing_mode="stretch_width"),
+                pn.Column(
+                    self.detail_title,
+                    self.detail_error,
+                    pn.Row(self.open_button, self.download, self.studio_link, sizing_mode="stretch_width"),
+                    self.top_view,
+                    self.side_view,
+                    sizing_mode="stretch_width",
+                ),
                 sizing_mode="stretch_width",
             ),
             self.joints,
@@ -519,7 +686,10 @@ class LibraryDashboard:
             self._show_status(f"**Cannot read the library:** {_text(self.error)}", "danger")
         elif not self.entries:
             what = "no index.json" if not self.library.index_path.exists() else "it holds no serves"
-            self._show_status(f"The library `{self.library.folder}` is empty ({what}). Export serves with `serve-studio evaluate --export` or from the studio.", "warning")
+            self._show_status(
+                f"The library `{self.library.folder}` is empty ({what}). Export serves with `serve-studio evaluate --export` or from the studio.",
+                "warning",
+            )
         else:
             n_legal = int(self.table["legal"].sum())
             self._show_status(f"{len(self.entries)} serves ({n_legal} legal) in `{self.library.index_path}`.", "info")
@@ -529,7 +699,9 @@ class LibraryDashboard:
 
     def filtered(self) -> pd.DataFrame:
         """The table rows that pass the current filters."""
-        return filter_table(self.table, side=self.side.value, task=self.task.value, legal=self.legal.value, cluster=self.cluster.value)
+        return filter_table(
+            self.table, side=self.side.value, task=self.task.value, legal=self.legal.value, cluster=self.cluster.value
+        )
 
     def entry(self, serve_id: str) -> LibraryEntry | None:
         """The loaded entry with ``serve_id``."""
@@ -537,7 +709,11 @@ class LibraryDashboard:
 
     # -- view updates ------------------------------------------------------------------
 
-    def _show_status(self, message: str, kind: str) -> None:
+    def _on_open_click(self, _event: Any) -> None:
+        """The "Open in studio" button (its outcome is shown in the status line)."""
+        self.open_in_studio()
+
+    def _show_status(self, message: str, kind: AlertType) -> None:
         self.status.object = message
         self.status.alert_type = kind
         self.status.visible = True
@@ -553,11 +729,17 @@ class LibraryDashboard:
 
     def _redraw_scatter(self) -> None:
         df = self.filtered()
-        self.scatter.object = spin_scatter(df, axes=self.axes.value, selected_id=self.selected_id, reference=self.reference)
+        self.scatter.object = spin_scatter(
+            df, axes=self.axes.value, selected_id=self.selected_id, reference=self.reference
+        )
         self.polar.object = spin_polar(df, selected_id=self.selected_id, reference=self.reference)
         shown = {sid: self.histories[sid] for sid in df["id"] if sid in self.histories}
-        self.convergence.object = convergence_plot(shown, names=dict(zip(df["id"], df["name"])), selected_id=self.selected_id)
-        self.convergence_info.object = convergence_text(shown, self.run_errors, selected_id=self.selected_id, runs_dir=self.runs_dir)
+        self.convergence.object = convergence_plot(
+            shown, names=dict(zip(df["id"], df["name"])), selected_id=self.selected_id
+        )
+        self.convergence_info.object = convergence_text(
+            shown, self.run_errors, selected_id=self.selected_id, runs_dir=self.runs_dir
+        )
 
     def _on_selection(self) -> None:
         df = self.tabulator.value
@@ -583,7 +765,11 @@ class LibraryDashboard:
             return
         d = entry.data
         net = net_state(d)
-        net_text = f"net crossing: {net.speed_h:.2f} m/s horizontal, spin {net.spin:.0f} rad/s (top {net.topspin:+.0f}, side {net.sidespin:+.0f}), clearance {net.clearance * 100:.1f} cm" if net else "no net crossing"
+        net_text = (
+            f"net crossing: {net.speed_h:.2f} m/s horizontal, spin {net.spin:.0f} rad/s (top {net.topspin:+.0f}, side {net.sidespin:+.0f}), clearance {net.clearance * 100:.1f} cm"
+            if net
+            else "no net crossing"
+        )
         verdict = "legal" if d["legal"] else "ILLEGAL"
         self.detail_title.object = f"### {_text(str(d['name']))}\n`{entry.id}` · {d['side']} toss · task {_text(str(d.get('task')))} · {verdict} · reward {float(d['reward']):.3f} · {entry_cluster(d)} · {net_text}"
         self.download.filename = f"{entry.id}.json"
@@ -619,7 +805,10 @@ class LibraryDashboard:
         except StudioError as err:
             self._show_status(f"**Cannot ask the studio to open the serve:** {_text(str(err))}", "danger")
             return False
-        self._show_status(f"Asked the studio to open `{self.selected_id}` (a studio running on `{self.library.folder}` loads it within a second).", "success")
+        self._show_status(
+            f"Asked the studio to open `{self.selected_id}` (a studio running on `{self.library.folder}` loads it within a second).",
+            "success",
+        )
         return True
 
     def _serve_json(self) -> io.StringIO:
@@ -630,13 +819,27 @@ class LibraryDashboard:
         return io.StringIO(json.dumps(entry.serve.to_json(), indent=2) + "\n")
 
 
-def build_dashboard(library_dir: str | Path, *, studio_url: str | None = None, runs_dir: str | Path = "runs", reference: str | Path | None = None) -> pn.viewable.Viewable:
+def build_dashboard(
+    library_dir: str | Path,
+    *,
+    studio_url: str | None = None,
+    runs_dir: str | Path = "runs",
+    reference: str | Path | None = None,
+) -> pn.viewable.Viewable:
     """The dashboard layout over ``library_dir`` (for notebooks: display it or ``.servable()``)."""
     pn.extension("tabulator")
     return LibraryDashboard(library_dir, studio_url=studio_url, runs_dir=runs_dir, reference=reference).layout
 
 
-def run_dashboard(*, library_dir: str | Path, host: str = "127.0.0.1", port: int = 5006, studio_url: str | None = None, runs_dir: str | Path = "runs", reference: str | Path | None = None) -> None:
+def run_dashboard(
+    *,
+    library_dir: str | Path,
+    host: str = "127.0.0.1",
+    port: int = 5006,
+    studio_url: str | None = None,
+    runs_dir: str | Path = "runs",
+    reference: str | Path | None = None,
+) -> None:
     """Serve the dashboard on http://host:port (blocking; localhost only by default).
 
     Each browser session gets its own dashboard reading ``library_dir`` (the reference
@@ -645,11 +848,19 @@ def run_dashboard(*, library_dir: str | Path, host: str = "127.0.0.1", port: int
     """
     pn.extension("tabulator")
     if reference is not None:
-        print(f"serve-studio dashboard: {load_reference(reference)[1]}", flush=True)  # computed once, before the first session
+        print(
+            f"serve-studio dashboard: {load_reference(reference)[1]}", flush=True
+        )  # computed once, before the first session
     origins = ["*"] if host in ("0.0.0.0", "::") else [f"{host}:{port}", f"localhost:{port}", f"127.0.0.1:{port}"]
-    print(f"serve-studio dashboard: http://{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{port} (library {Path(library_dir)}/{INDEX_NAME})")
+    print(
+        f"serve-studio dashboard: http://{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{port} (library {Path(library_dir)}/{INDEX_NAME})"
+    )
     pn.serve(
-        {"/": lambda: LibraryDashboard(library_dir, studio_url=studio_url, runs_dir=runs_dir, reference=reference).layout},
+        {
+            "/": lambda: (
+                LibraryDashboard(library_dir, studio_url=studio_url, runs_dir=runs_dir, reference=reference).layout
+            )
+        },
         address=host,
         port=port,
         show=False,

@@ -88,7 +88,9 @@ def load_serve_in(folder: Path, path: Path) -> HandServe:
     """:func:`~studio.serve.params.load_serve` of ``path``, refused (DataFileError) unless it
     resolves inside ``folder`` (``..`` or a symlink pointing out of it)."""
     if not inside(folder, path):
-        raise DataFileError(shown(str(path)), f"resolves outside the folder {shown(str(folder))}; only files inside it are read")
+        raise DataFileError(
+            shown(str(path)), f"resolves outside the folder {shown(str(folder))}; only files inside it are read"
+        )
     return load_serve(path)
 
 
@@ -102,7 +104,10 @@ def read_upload(name: Any, content: Any) -> HandServe:
         raise DataFileError(label, "the upload has no file name")
     pos = lone_surrogate(name)
     if pos is not None:
-        raise DataFileError(label, f"the file name is not valid Unicode (a lone surrogate at position {pos}); rename the file and upload it again")
+        raise DataFileError(
+            label,
+            f"the file name is not valid Unicode (a lone surrogate at position {pos}); rename the file and upload it again",
+        )
     if not isinstance(content, bytes):
         raise DataFileError(label, "the upload holds no file content")
     if not content:
@@ -149,7 +154,9 @@ class FilesPanel:
                 "Export beyond effort limits", initial_value=False,
                 hint="Raise each exceeded joint's effort limit to the plan's peak for this export (recorded in the entry)",
             )  # fmt: skip
-            self.library_pick = gui.add_dropdown("Library serve", options=[NO_LIBRARY_SERVE], initial_value=NO_LIBRARY_SERVE)
+            self.library_pick = gui.add_dropdown(
+                "Library serve", options=[NO_LIBRARY_SERVE], initial_value=NO_LIBRARY_SERVE
+            )
         guard = self.host.guard
         guard.add(self.save_button, Press("Save as seed"))
         guard.add(self.download_button, Press("Download JSON"))
@@ -172,7 +179,9 @@ class FilesPanel:
         serves_dir = self.host.serves_dir
         choices = {stem: (serves_dir, path) for stem, path in list_serves(serves_dir).items()}
         if serves_dir.resolve() != EXAMPLES_DIR.resolve():
-            choices.update({f"example/{stem}": (EXAMPLES_DIR, path) for stem, path in list_serves(EXAMPLES_DIR).items()})
+            choices.update(
+                {f"example/{stem}": (EXAMPLES_DIR, path) for stem, path in list_serves(EXAMPLES_DIR).items()}
+            )
         self._quiet = True
         try:
             self._serve_choices = {**self._serve_choices, **choices}  # old and new entries valid while the list changes
@@ -291,7 +300,11 @@ class FilesPanel:
             self.host.message("**Export failed:** nothing evaluated yet")
             return
         raised = efforts.raised_to_peaks() if efforts is not None and self.export_beyond.value else None
-        limits = {n: float(lim) for n, lim in zip(raised.names, raised.limit) if n in raised.raised} if raised is not None else {}
+        limits = (
+            {n: float(lim) for n, lim in zip(raised.names, raised.limit) if n in raised.raised}
+            if raised is not None
+            else {}
+        )
         library_dir = self.host.library_dir
         try:
             entry = ServeLibrary(library_dir).add(
@@ -299,8 +312,14 @@ class FilesPanel:
                 preparation=self.host.context.preparation(evaluation.serve.side), effort_limits=limits,
             )  # fmt: skip
             verdict = "legal" if evaluation.legal else f"NOT legal ({evaluation.reason})"
-            beyond = f" Effort limits raised on purpose: {', '.join(f'{n} {v:g}' for n, v in limits.items())}." if limits else ""
-            self.host.message(f"Exported `{evaluation.serve.name}` ({verdict}) to `{library_dir}` as `{entry.id}`.{beyond}")
+            beyond = (
+                f" Effort limits raised on purpose: {', '.join(f'{n} {v:g}' for n, v in limits.items())}."
+                if limits
+                else ""
+            )
+            self.host.message(
+                f"Exported `{evaluation.serve.name}` ({verdict}) to `{library_dir}` as `{entry.id}`.{beyond}"
+            )
             self.refresh_library()
         except (StudioError, OSError) as err:
             self.host.message(f"**Export failed:** {err}")

@@ -31,6 +31,7 @@ from studio.ui.host import StudioHost
 
 if TYPE_CHECKING:
     from studio.optimize.optimizer import OptimizationResult, RunSummary
+    from studio.toss.primitive import TossSide
 
 NEW_RUN = "(new run)"
 """The Optimize tab's "run" choice that starts a new run."""
@@ -82,18 +83,28 @@ class JobRunner:
         self.opt_workers = number("workers")
         self.opt_tosses = number("tosses per evaluation")
         self.opt_seed = number("seed")
-        self.opt_run = gui.add_dropdown("run", options=[NEW_RUN], initial_value=NEW_RUN, hint="a new run, or an earlier run of this side and task to continue")
+        self.opt_run = gui.add_dropdown(
+            "run",
+            options=[NEW_RUN],
+            initial_value=NEW_RUN,
+            hint="a new run, or an earlier run of this side and task to continue",
+        )
         self.opt_follow = gui.add_checkbox("show best so far", initial_value=True)
         self.opt_start = gui.add_button("Optimize from seeds")
         self.rob_evaluations = number("robust candidates", step=12)
-        self.rob_start = gui.add_button("Make robust", hint="local search around the current serve for one legal on more recorded tosses, keeping 90 % of its spin at the net")
+        self.rob_start = gui.add_button(
+            "Make robust",
+            hint="local search around the current serve for one legal on more recorded tosses, keeping 90 % of its spin at the net",
+        )
         self.opt_stop = gui.add_button("Stop", disabled=True)
         guard = self.host.guard
         guard.add(self.opt_run, Choice("run", lambda: [NEW_RUN, *self._runs]))
         guard.add(self.opt_follow, Flag("show best so far"))
         for button in (self.opt_start, self.rob_start, self.opt_stop):
             guard.add(button, Press(button.label))
-        self.opt_progress = guard.add(gui.add_progress_bar(0.0, animated=False), Number("progress", 0.0, 100.0, "%", client_settable=False))
+        self.opt_progress = guard.add(
+            gui.add_progress_bar(0.0, animated=False), Number("progress", 0.0, 100.0, "%", client_settable=False)
+        )
         self.opt_md = gui.add_markdown("")
         self.opt_plot = gui.add_uplot(
             data=(np.zeros(1), np.zeros(1)),
@@ -174,7 +185,8 @@ class JobRunner:
         try:
             controls = self.host.controls()
             iterations, population, workers, tosses, seed = (
-                int(guard.check(h)) for h in (self.opt_iterations, self.opt_population, self.opt_workers, self.opt_tosses, self.opt_seed)
+                int(guard.check(h))
+                for h in (self.opt_iterations, self.opt_population, self.opt_workers, self.opt_tosses, self.opt_seed)
             )
             choice = guard.check(self.opt_run)
             run = None if choice == NEW_RUN else self._runs.get(choice)
@@ -194,7 +206,9 @@ class JobRunner:
         self.opt_md.content = f"**Cannot start:** {text}"
         self.host.message(f"**Cannot start:** {text}")
 
-    def _progress(self, run_dir: Path, side: str, task: str, scale: Any) -> Callable[[int, int, float, ServeParams | None], None]:
+    def _progress(
+        self, run_dir: Path, side: TossSide, task: str, scale: Any
+    ) -> Callable[[int, int, float, ServeParams | None], None]:
         """The optimizer's progress callback: bar, plot, text, and the best serve so far
         into the controls when "show best so far" is ticked."""
         xs: list[float] = []
@@ -209,11 +223,22 @@ class JobRunner:
             self.opt_md.content = f"{done} / {total} evaluations, best reward {best:+.3f}  \nrun folder `{run_dir}`"
             if params is not None and params != last_best[0] and self.opt_follow.value:
                 last_best[0] = params
-                self.host.load(HandServe(name=f"{task} best so far", side=side, params=params, task=task, limit_scale=scale))  # type: ignore[arg-type]
+                self.host.load(
+                    HandServe(name=f"{task} best so far", side=side, params=params, task=task, limit_scale=scale)
+                )
 
         return progress
 
-    def _run_optimization(self, controls: Controls, iterations: int, population: int, workers: int, tosses: int, seed: int, run: RunSummary | None = None) -> None:
+    def _run_optimization(
+        self,
+        controls: Controls,
+        iterations: int,
+        population: int,
+        workers: int,
+        tosses: int,
+        seed: int,
+        run: RunSummary | None = None,
+    ) -> None:
         """A new HEBO run from the seeds, or with ``run`` the continuation of that run (its own
         seeds, seed, population, tosses and limits; at least its own iterations)."""
         from studio.optimize.optimizer import optimize_serve
@@ -222,11 +247,23 @@ class JobRunner:
         run_dir = self.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{side}-{task}"
         scale = controls.serve.limit_scale
         if run is not None:
-            side, task, run_dir, population, tosses, seed, scale = run.side, run.task, run.run_dir, run.population, run.tosses, run.seed, run.limit_scale
+            side, task, run_dir, population, tosses, seed, scale = (
+                run.side,
+                run.task,
+                run.run_dir,
+                run.population,
+                run.tosses,
+                run.seed,
+                run.limit_scale,
+            )
             iterations = max(iterations, run.iterations)
         try:
             seeds = [] if run is not None else self.seeds_for(side)  # a resumed run takes its own from run.json
-            self.opt_md.content = f"resuming `{run_dir.name}` ({run.evaluations} evaluations logged) ..." if run is not None else f"evaluating {len(seeds)} seed(s) ..."
+            self.opt_md.content = (
+                f"resuming `{run_dir.name}` ({run.evaluations} evaluations logged) ..."
+                if run is not None
+                else f"evaluating {len(seeds)} seed(s) ..."
+            )
             result = optimize_serve(
                 side=side, task=task, run_dir=run_dir, seeds=seeds, iterations=iterations, population=population,
                 workers=workers, tosses=tosses, seed=seed, progress=self._progress(run_dir, side, task, scale),
@@ -234,7 +271,9 @@ class JobRunner:
             )  # fmt: skip
             self._report_optimization(result, run_dir, task, seed)
         except Exception as err:  # noqa: BLE001 - shown in the panel, the studio keeps running
-            self.opt_md.content = f"**Optimization failed:** {type(err).__name__}: {err}  \n(evaluations so far are kept in `{run_dir}`)"
+            self.opt_md.content = (
+                f"**Optimization failed:** {type(err).__name__}: {err}  \n(evaluations so far are kept in `{run_dir}`)"
+            )
         finally:
             self.refresh_runs()  # before the busy flag drops: unreadable folders do not hide the result
             self._set_busy(False)
@@ -244,7 +283,9 @@ class JobRunner:
         if result.best is None or result.summary is None:
             self.opt_md.content = "**Nothing evaluated.**"
             return
-        self.host.load(replace(result.best, name=f"{task} optimized", task=task, notes=f"HEBO run {run_dir.name}, seed {seed}"))
+        self.host.load(
+            replace(result.best, name=f"{task} optimized", task=task, notes=f"HEBO run {run_dir.name}, seed {seed}")
+        )
         s = result.summary
         self.opt_md.content = (
             f"**{'Stopped' if result.stopped else 'Done'}:** {result.evaluations} evaluations in {result.timings.get('total', 0):.0f} s. "
@@ -265,7 +306,9 @@ class JobRunner:
             return
         if not self._claim():
             return
-        threading.Thread(target=self._run_robustify, args=(controls, evaluations), name="studio-robustify", daemon=True).start()
+        threading.Thread(
+            target=self._run_robustify, args=(controls, evaluations), name="studio-robustify", daemon=True
+        ).start()
 
     def _run_robustify(self, controls: Controls, evaluations: int) -> None:
         from studio.optimize.robust import RobustScore, robustify_serve
@@ -280,10 +323,21 @@ class JobRunner:
             if self._robust_context is None:  # the live evaluation's context is not shared between threads
                 self.opt_md.content = "robustify: loading models ..."
                 self._robust_context = EvaluationContext.default()
-            res = robustify_serve(controls.serve, context=self._robust_context, task=controls.task, evaluations=evaluations, progress=progress, stop=self.stop_event)
+            res = robustify_serve(
+                controls.serve,
+                context=self._robust_context,
+                task=controls.task,
+                evaluations=evaluations,
+                progress=progress,
+                stop=self.stop_event,
+            )
             if res.improved:
                 self.host.load(replace(res.serve, name=f"{controls.serve.name} robust"))
-            self.opt_md.content = f"**{res.summary()}**" + (" The serve is now in the controls." if res.improved else "") + f" ({time.perf_counter() - start:.0f} s)"
+            self.opt_md.content = (
+                f"**{res.summary()}**"
+                + (" The serve is now in the controls." if res.improved else "")
+                + f" ({time.perf_counter() - start:.0f} s)"
+            )
         except Exception as err:  # noqa: BLE001 - shown in the panel, the studio keeps running
             self.opt_md.content = f"**Robustify failed:** {type(err).__name__}: {err}"
         finally:

@@ -26,7 +26,9 @@ class MatchPanel:
         play: starts the playback from its beginning (called when "play it" is ticked).
     """
 
-    def __init__(self, host: StudioHost, gui: Any, *, show_entry: Callable[[Any], None], play: Callable[[], None]) -> None:
+    def __init__(
+        self, host: StudioHost, gui: Any, *, show_entry: Callable[[Any], None], play: Callable[[], None]
+    ) -> None:
         self.host = host
         self._show_entry = show_entry
         self._play = play
@@ -62,7 +64,9 @@ class MatchPanel:
         from studio.library.store import ServeLibrary
 
         try:
-            entry = next_serve(ServeLibrary(self.host.library_dir), self.current)  # a pruned previous serve counts as none
+            entry = next_serve(
+                ServeLibrary(self.host.library_dir), self.current
+            )  # a pruned previous serve counts as none
         except StudioError as err:
             self.match_md.content = f"**No serve:** {err}"
             return
@@ -95,7 +99,9 @@ class MatchPanel:
                 serve=self.current if server == "robot" else None, ace=outcome == "ace", opponent=self.match_opponent.value.strip(),
             )  # fmt: skip
         except StudioError as err:
-            self.match_md.content = f"**Point not recorded:** {err}" + (" Press *Next serve* first." if server == "robot" and self.current is None else "")
+            self.match_md.content = f"**Point not recorded:** {err}" + (
+                " Press *Next serve* first." if server == "robot" and self.current is None else ""
+            )
             return
         self.match_md.content = f"Point {len(points)} recorded: {server} served, {'robot' if won else 'opponent'} won{' (ace)' if outcome == 'ace' else ''}."
         self.refresh_stats()

@@ -52,8 +52,12 @@ def guarded_process_request(inner: Callable[..., Any] | None, *, bound_host: str
 
     def process_request(connection: Any, request: Any) -> Any:
         headers = request.headers
-        if headers.get("Upgrade", "").lower() == "websocket" and not origin_allowed(headers.get("Origin"), headers.get("Host"), bound_host=bound_host):
-            return connection.respond(http.HTTPStatus.FORBIDDEN, "foreign origin refused: open the studio from its own address\n")
+        if headers.get("Upgrade", "").lower() == "websocket" and not origin_allowed(
+            headers.get("Origin"), headers.get("Host"), bound_host=bound_host
+        ):
+            return connection.respond(
+                http.HTTPStatus.FORBIDDEN, "foreign origin refused: open the studio from its own address\n"
+            )
         return inner(connection, request) if inner is not None else None
 
     return process_request
@@ -74,5 +78,6 @@ def install() -> None:
 
     server_ns = types.SimpleNamespace(**{**vars(websockets.asyncio.server), "serve": serve})
     asyncio_ns = types.SimpleNamespace(**{**vars(websockets.asyncio), "server": server_ns})
-    _infra.websockets = types.SimpleNamespace(**{**vars(websockets), "asyncio": asyncio_ns})  # viser's module only
+    # viser's module only; setattr because a namespace stands in for the websockets module.
+    setattr(_infra, "websockets", types.SimpleNamespace(**{**vars(websockets), "asyncio": asyncio_ns}))  # noqa: B010
     _installed.append(True)

@@ -138,7 +138,9 @@ def overlay_markdown(now: ServeNumbers, pinned: ServeNumbers | None = None) -> s
         lines += [f"| {label} | {_cell(text)} |" for label, text in rows]
     else:
         lines = ["| | now | pinned A |", "|---|---|---|"]
-        lines += [f"| {label} | {_cell(text)} | {_cell(other)} |" for (label, text), (_, other) in zip(rows, _rows(pinned))]
+        lines += [
+            f"| {label} | {_cell(text)} | {_cell(other)} |" for (label, text), (_, other) in zip(rows, _rows(pinned))
+        ]
     return "\n".join(lines)
 
 

@@ -45,7 +45,9 @@ class PlaybackPanel:
             speed and ball size); None: unchecked.
     """
 
-    def __init__(self, gui: Any, scene: StudioScene, lock: AbstractContextManager[Any], guard: InputGuard | None = None) -> None:
+    def __init__(
+        self, gui: Any, scene: StudioScene, lock: AbstractContextManager[Any], guard: InputGuard | None = None
+    ) -> None:
         self.scene = scene
         self.lock = lock
         self.playing = False
@@ -55,10 +57,18 @@ class PlaybackPanel:
         """The time slider's range: the shown serve's playback [s]."""
         with gui.add_folder("Playback"):
             self.play_button = gui.add_button("Play")
-            self.slow_button = gui.add_button("Slow motion from contact", hint=f"play at {SLOW_MOTION} from just before the racket contact: the seam turns at the simulated spin")
+            self.slow_button = gui.add_button(
+                "Slow motion from contact",
+                hint=f"play at {SLOW_MOTION} from just before the racket contact: the seam turns at the simulated spin",
+            )
             self.time = gui.add_slider("time [s]", min=0.0, max=2.5, step=0.001, initial_value=0.0)
             self.speed = gui.add_dropdown("speed", options=list(SPEEDS), initial_value="0.25x")
-            self.ball_size = gui.add_dropdown("ball drawn", options=list(BALL_MAGNIFICATIONS), initial_value="x3", hint="the ball is 40 mm across; a bigger ball shows its seam turning")
+            self.ball_size = gui.add_dropdown(
+                "ball drawn",
+                options=list(BALL_MAGNIFICATIONS),
+                initial_value="x3",
+                hint="the ball is 40 mm across; a bigger ball shows its seam turning",
+            )
         if guard is None:
             self.play_button.on_click(lambda _event: self.toggle())
             self.slow_button.on_click(lambda _event: self.slow_motion_from_contact())

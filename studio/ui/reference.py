@@ -95,7 +95,10 @@ class ReferenceServes:
         for who in (ROBOT, HUMAN):
             n, miss = self.serves.get(who, 0), self.no_crossing.get(who, 0)
             touch = int(self.of(who)["touches_net"].sum()) if len(self.table) else 0
-            notes = [f"{touch} touch the net in the model" if touch else "", f"{miss} never reach the net plane (not drawn)" if miss else ""]
+            notes = [
+                f"{touch} touch the net in the model" if touch else "",
+                f"{miss} never reach the net plane (not drawn)" if miss else "",
+            ]
             notes = [x for x in notes if x]
             parts.append(f"{n} {who} serves" + (f" ({'; '.join(notes)})" if notes else ""))
         return (
@@ -104,7 +107,15 @@ class ReferenceServes:
         )
 
 
-def serve_state(who: str, p: npt.ArrayLike, v: npt.ArrayLike, w: npt.ArrayLike, *, flight: FlightModel = DEFAULT_FLIGHT, lag: float = VELOCITY_LAG) -> BallState:
+def serve_state(
+    who: str,
+    p: npt.ArrayLike,
+    v: npt.ArrayLike,
+    w: npt.ArrayLike,
+    *,
+    flight: FlightModel = DEFAULT_FLIGHT,
+    lag: float = VELOCITY_LAG,
+) -> BallState:
     """The ball just after the racket in the studio's frame: velocity lag-corrected,
     a human serve turned by 180 degrees about +Z (position [m], velocity [m/s], spin [rad/s])."""
     pos: npt.NDArray[np.float64] = np.asarray(p, dtype=float)
@@ -115,7 +126,9 @@ def serve_state(who: str, p: npt.ArrayLike, v: npt.ArrayLike, w: npt.ArrayLike, 
     return BallState(pos, vel, spin)
 
 
-def fly_to_net(state: BallState, *, flight: FlightModel = DEFAULT_FLIGHT, table: TableBounceModel = DEFAULT_TABLE) -> NetState | None:
+def fly_to_net(
+    state: BallState, *, flight: FlightModel = DEFAULT_FLIGHT, table: TableBounceModel = DEFAULT_TABLE
+) -> NetState | None:
     """The ball at its first crossing of the net plane towards +X (through the net, see
     :data:`NETLESS_COURT`), None if it never gets there."""
     traj = simulate(state, FLIGHT_TIME, flight=flight, table=table, court=NETLESS_COURT, max_table_bounces=2)
@@ -142,7 +155,9 @@ def reference_serves(path: str | os.PathLike[str], *, flight: FlightModel = DEFA
         rows.append({"who": who, "player": rally.player, "rally": rally.rally_id, "speed_h": net.speed_h, "spin": net.spin,
                      "topspin": net.topspin, "sidespin": net.sidespin, "cork": net.cork, "clearance": net.clearance,
                      "touches_net": bool(net.clearance < 0.0)})  # fmt: skip
-    return ReferenceServes(path=path, table=pd.DataFrame(rows, columns=list(COLUMNS)), serves=serves, no_crossing=missed)
+    return ReferenceServes(
+        path=path, table=pd.DataFrame(rows, columns=list(COLUMNS)), serves=serves, no_crossing=missed
+    )
 
 
 _CACHE: dict[tuple[str, int, int], ReferenceServes] = {}

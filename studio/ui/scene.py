@@ -142,11 +142,11 @@ def _segments_array(points: npt.NDArray[np.float64]) -> npt.NDArray[np.float32]:
 
 def _wxyz_from_z(z: npt.ArrayLike) -> tuple[float, float, float, float]:
     """Quaternion (w, x, y, z) rotating +Z onto the unit vector z."""
-    z = np.asarray(z, dtype=float)
-    z = z / np.linalg.norm(z)
-    axis = np.cross([0.0, 0.0, 1.0], z)
+    u = np.asarray(z, dtype=float)
+    u = u / np.linalg.norm(u)
+    axis = np.cross([0.0, 0.0, 1.0], u)
     s = float(np.linalg.norm(axis))
-    c = float(z[2])
+    c = float(u[2])
     if s < 1e-12:
         return (1.0, 0.0, 0.0, 0.0) if c > 0 else (0.0, 1.0, 0.0, 0.0)
     angle = np.arctan2(s, c)
@@ -178,7 +178,9 @@ class StudioScene:
         court: court geometry to draw.
     """
 
-    def __init__(self, server: viser.ViserServer, *, urdf_path: Path | None = None, court: Court = DEFAULT_COURT) -> None:
+    def __init__(
+        self, server: viser.ViserServer, *, urdf_path: Path | None = None, court: Court = DEFAULT_COURT
+    ) -> None:
         from viser.extras import ViserUrdf
 
         self.server = server
@@ -197,12 +199,19 @@ class StudioScene:
         scene.set_up_direction("+z")
         c = self.court
         scene.add_grid("/floor", width=8.0, height=6.0, cell_size=0.5, position=(0.0, 0.0, c.floor_z))
-        colors = {"table": (20, 60, 140), "net": (235, 235, 235), "post": (40, 40, 40), "leg": (50, 50, 50), "line": (250, 250, 250)}
+        colors = {
+            "table": (20, 60, 140),
+            "net": (235, 235, 235),
+            "post": (40, 40, 40),
+            "leg": (50, 50, 50),
+            "line": (250, 250, 250),
+        }
         for box in (*c.boxes(), *c.legs(), *c.lines()):
+            hx, hy, hz = box.half_size
             scene.add_box(
                 f"/court/{box.name}",
                 color=colors.get(box.kind, (128, 128, 128)),
-                dimensions=tuple(2 * h for h in box.half_size),
+                dimensions=(2 * hx, 2 * hy, 2 * hz),
                 position=box.center,
                 opacity=0.75 if box.kind == "net" else None,
                 cast_shadow=False,
@@ -216,8 +225,12 @@ class StudioScene:
         ball = scene.add_frame("/ball", show_axes=False, scale=scale, visible=False)
         scene.add_icosphere("/ball/body", radius=r, color=COLORS["ball"], subdivisions=3)
         seam = _segments_array(1.02 * r * seam_points(72))
-        scene.add_line_segments("/ball/seam", points=seam, colors=COLORS["seam"], thickness=0.12 * r, thickness_units="world")  # scaled with the frame
-        scene.add_icosphere("/ball/logo", radius=0.3 * r, color=COLORS["logo"], position=tuple(0.8 * r * np.asarray(LOGO_DIRECTION)))
+        scene.add_line_segments(
+            "/ball/seam", points=seam, colors=COLORS["seam"], thickness=0.12 * r, thickness_units="world"
+        )  # scaled with the frame
+        scene.add_icosphere(
+            "/ball/logo", radius=0.3 * r, color=COLORS["logo"], position=tuple(0.8 * r * np.asarray(LOGO_DIRECTION))
+        )
         return ball
 
     def set_ball_scale(self, scale: float) -> None:
@@ -275,7 +288,9 @@ class StudioScene:
             for seg in frame.segments:
                 lines = dashed(seg.points)
                 if len(lines):
-                    self._ghost.append(scene.add_line_segments(f"/ghost/{seg.name}", points=lines, colors=seg.color, thickness=0.005))
+                    self._ghost.append(
+                        scene.add_line_segments(f"/ghost/{seg.name}", points=lines, colors=seg.color, thickness=0.005)
+                    )
             self._ghost.extend(self._add_markers("/ghost/markers", "/ghost/labels", frame.markers))
 
     @property
@@ -286,7 +301,9 @@ class StudioScene:
     def _add_paths(self, root: str, segments: tuple[PathSegment, ...]) -> list[object]:
         scene = self.server.scene
         return [
-            scene.add_line_segments(f"{root}/{seg.name}", points=_segments_array(seg.points), colors=seg.color, thickness=0.006)
+            scene.add_line_segments(
+                f"{root}/{seg.name}", points=_segments_array(seg.points), colors=seg.color, thickness=0.006
+            )
             for seg in segments
             if len(seg.points) >= 2
         ]
@@ -296,7 +313,11 @@ class StudioScene:
         out: list[object] = []
         for m in markers:
             if m.radius > 0:
-                out.append(scene.add_icosphere(f"{root}/{m.name}", radius=m.radius, color=m.color, position=m.position, opacity=m.opacity))
+                out.append(
+                    scene.add_icosphere(
+                        f"{root}/{m.name}", radius=m.radius, color=m.color, position=m.position, opacity=m.opacity
+                    )
+                )
             if m.label:
                 where = (m.position[0], m.position[1], m.position[2] + 0.04)
                 out.append(scene.add_label(f"{label_root}/{m.name}", m.label, position=where, font_screen_scale=0.7))
@@ -316,7 +337,17 @@ class StudioScene:
         )
         arrows = np.stack([[pos, pos + 0.15 * np.asarray(tgt.normal)], [pos, pos + 0.05 * np.asarray(tgt.velocity)]])
         arrow_colors = np.array([COLORS["target_normal"], COLORS["target_velocity"]], dtype=np.uint8)
-        return [disc, scene.add_arrows("/target/arrows", points=arrows, colors=arrow_colors, shaft_radius=0.004, head_radius=0.01, head_length=0.025)]
+        return [
+            disc,
+            scene.add_arrows(
+                "/target/arrows",
+                points=arrows,
+                colors=arrow_colors,
+                shaft_radius=0.004,
+                head_radius=0.01,
+                head_length=0.025,
+            ),
+        ]
 
     def _add_spin_arrows(self, arrows: tuple[SpinArrow, ...]) -> list[object]:
         scene = self.server.scene
@@ -324,8 +355,24 @@ class StudioScene:
         for a in arrows:
             start = np.asarray(a.origin)
             tip = start + np.asarray(a.vector)
-            out.append(scene.add_arrows(f"/spin/{a.name}", points=np.stack([[start, tip]]), colors=SPIN_ARROW_COLOR, shaft_radius=0.003, head_radius=0.009, head_length=0.02))
-            out.append(scene.add_label(f"/spin_labels/{a.name}", a.label, position=tuple(tip + np.array([0.0, 0.0, 0.02])), font_screen_scale=0.6))
+            out.append(
+                scene.add_arrows(
+                    f"/spin/{a.name}",
+                    points=np.stack([[start, tip]]),
+                    colors=SPIN_ARROW_COLOR,
+                    shaft_radius=0.003,
+                    head_radius=0.009,
+                    head_length=0.02,
+                )
+            )
+            out.append(
+                scene.add_label(
+                    f"/spin_labels/{a.name}",
+                    a.label,
+                    position=tuple(tip + np.array([0.0, 0.0, 0.02])),
+                    font_screen_scale=0.6,
+                )
+            )
         return out
 
     def show_time(self, time: float) -> None:
@@ -400,11 +447,18 @@ def scene_frame(ev: Evaluation, context: EvaluationContext) -> SceneFrame:
         segments.append(PathSegment("flight", ev.ball.p, color))
         bounce = 0
         for k, e in enumerate(ev.ball.events):
-            label = e.kind
+            label: str = e.kind
             if e.kind == "table":
                 bounce += 1
                 label = f"bounce {bounce}"
-            markers.append(Marker(f"event_{k}", tuple(float(x) for x in e.p), COLORS.get(e.kind, COLORS["unknown"]) if e.kind != "table" else color, label))  # type: ignore[arg-type]
+            markers.append(
+                Marker(
+                    f"event_{k}",
+                    (float(e.p[0]), float(e.p[1]), float(e.p[2])),
+                    COLORS.get(e.kind, COLORS["unknown"]) if e.kind != "table" else color,
+                    label,
+                )
+            )
         arrows = spin_arrows(ev.ball)
     if ev.rollout is not None:
         segments.append(PathSegment("mujoco", np.asarray(ev.rollout.p), COLORS["rollout"]))
@@ -412,4 +466,11 @@ def scene_frame(ev: Evaluation, context: EvaluationContext) -> SceneFrame:
     q0 = context.robot.q_flat
     if ev.t is not None and ev.q is not None:
         q0 = ev.q[np.searchsorted(ev.t, ev.serve.params.tau).clip(0, len(ev.t) - 1)]
-    return SceneFrame(segments=tuple(segments), markers=tuple(markers), target=ev.target, robot_q=q0, playback=playback, spin_arrows=arrows)
+    return SceneFrame(
+        segments=tuple(segments),
+        markers=tuple(markers),
+        target=ev.target,
+        robot_q=q0,
+        playback=playback,
+        spin_arrows=arrows,
+    )

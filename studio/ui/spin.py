@@ -85,7 +85,9 @@ def rotate(q: npt.ArrayLike, v: npt.ArrayLike) -> FloatArray:
     return v + w * t + np.cross(u, t)
 
 
-def integrate_orientation(t: npt.ArrayLike, w: npt.ArrayLike, q0: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)) -> FloatArray:
+def integrate_orientation(
+    t: npt.ArrayLike, w: npt.ArrayLike, q0: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+) -> FloatArray:
     """The ball's orientation at each sample of a spin history.
 
     Between samples k and k+1 the ball turns at the mean of their spins (world-frame
@@ -134,7 +136,9 @@ def orientation_at(times: npt.ArrayLike, t: npt.ArrayLike, w: npt.ArrayLike, q: 
     idx = np.clip(np.searchsorted(t, times, side="right") - 1, 0, len(t) - 1)
     dt = np.clip(times - t[idx], 0.0, None)
     dt[times > t[-1]] = 0.0
-    out = quat_multiply(quat_from_rotvec(np.asarray(w, dtype=float)[idx] * dt[:, None]), np.asarray(q, dtype=float)[idx])
+    out = quat_multiply(
+        quat_from_rotvec(np.asarray(w, dtype=float)[idx] * dt[:, None]), np.asarray(q, dtype=float)[idx]
+    )
     return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
@@ -145,7 +149,10 @@ def seam_points(n: int = 96, lobe: float = 0.3) -> FloatArray:
     ``b = lobe`` lies on the unit sphere for every s (``x^2 + y^2 + z^2 = (a + b)^2``)."""
     a, b = 1.0 - lobe, lobe
     s = np.linspace(0.0, 2.0 * np.pi, n + 1)
-    return np.stack([a * np.cos(s) + b * np.cos(3 * s), a * np.sin(s) - b * np.sin(3 * s), 2.0 * np.sqrt(a * b) * np.sin(2 * s)], axis=1)
+    return np.stack(
+        [a * np.cos(s) + b * np.cos(3 * s), a * np.sin(s) - b * np.sin(3 * s), 2.0 * np.sqrt(a * b) * np.sin(2 * s)],
+        axis=1,
+    )
 
 
 @dataclass(frozen=True, slots=True)

@@ -65,14 +65,22 @@ def install() -> None:
             handle_message(message)
 
     _infra._message_consumer = _message_consumer
-    msgpack = types.SimpleNamespace(**{**vars(_infra.msgspec.msgpack), "encode": _safe_encode(_infra.msgspec.msgpack.encode)})
+    msgpack = types.SimpleNamespace(
+        **{**vars(_infra.msgspec.msgpack), "encode": _safe_encode(_infra.msgspec.msgpack.encode)}
+    )
     _infra.msgspec = types.SimpleNamespace(**{**vars(_infra.msgspec), "msgpack": msgpack})  # type: ignore[assignment]  # viser's module only
     _installed.append(True)
 
 
 def _undecodable(websocket: Any, err: Exception) -> None:
-    kind = "text that is not valid Unicode (such as a file name with a lone surrogate)" if isinstance(err, UnicodeError) else "a malformed message"
-    text = f"**Refused:** a browser sent {kind}; the message was dropped ({type(err).__name__}: {shown(str(err))[:160]})."
+    kind = (
+        "text that is not valid Unicode (such as a file name with a lone surrogate)"
+        if isinstance(err, UnicodeError)
+        else "a malformed message"
+    )
+    text = (
+        f"**Refused:** a browser sent {kind}; the message was dropped ({type(err).__name__}: {shown(str(err))[:160]})."
+    )
     log.warning("studio: %s", text)
     try:
         port = int(websocket.local_address[1])
@@ -112,7 +120,9 @@ def gate(server: Any, guard: InputGuard, report: Callable[[str], None]) -> None:
         def handler(client_id: Any, message: Any) -> None:
             size, name = message.size_bytes, message.filename
             if not isinstance(size, int) or isinstance(size, bool) or not 0 <= size <= MAX_UPLOAD_BYTES:
-                report(f"**Upload refused:** `{value_text(name)}` announces {value_text(size)} bytes; at most {MAX_UPLOAD_BYTES} bytes are accepted.")
+                report(
+                    f"**Upload refused:** `{value_text(name)}` announces {value_text(size)} bytes; at most {MAX_UPLOAD_BYTES} bytes are accepted."
+                )
                 return
             if not isinstance(name, str) or not isinstance(message.part_count, int) or message.part_count < 0:
                 report("**Upload refused:** a malformed upload (file name or part count).")
@@ -127,9 +137,15 @@ def gate(server: Any, guard: InputGuard, report: Callable[[str], None]) -> None:
             if state is not None:
                 content = message.content
                 sent = state["transferred_bytes"] + (len(content) if isinstance(content, (bytes, bytearray)) else 0)
-                if not isinstance(content, (bytes, bytearray)) or sent > state["total_bytes"] or not isinstance(message.part_index, int):
+                if (
+                    not isinstance(content, (bytes, bytearray))
+                    or sent > state["total_bytes"]
+                    or not isinstance(message.part_index, int)
+                ):
                     gui._current_file_upload_states.pop(message.transfer_uuid, None)
-                    report(f"**Upload refused:** `{value_text(state['filename'])}` sent more than the {state['total_bytes']} bytes it announced, or a malformed part.")
+                    report(
+                        f"**Upload refused:** `{value_text(state['filename'])}` sent more than the {state['total_bytes']} bytes it announced, or a malformed part."
+                    )
                     return
             original(client_id, message)
 
@@ -157,13 +173,14 @@ def gate(server: Any, guard: InputGuard, report: Callable[[str], None]) -> None:
     iface.on_client_connect(gate_connection)  # after viser's own: its handlers exist by then
 
 
-
 def _quiet_errors(handler: Callable[..., Any], name: str, report: Callable[[str], None] | None) -> Callable[..., Any]:
     """``handler`` reporting its errors in one line (no traceback, the studio goes on);
     ``report``: also shown in the studio (None: the log only)."""
 
     def failed(err: Exception) -> None:
-        text = f"**Refused:** a browser's {name} could not be handled ({type(err).__name__}: {value_text(str(err), 160)})."
+        text = (
+            f"**Refused:** a browser's {name} could not be handled ({type(err).__name__}: {value_text(str(err), 160)})."
+        )
         log.warning("studio: %s", text)
         if report is not None:
             report(text)
@@ -212,7 +229,9 @@ def _safe_encode(encode: Callable[..., bytes]) -> Callable[..., bytes]:
         try:
             return encode(obj, *args, **kwargs)
         except UnicodeEncodeError:
-            log.warning("studio: a GUI message held text that is not valid Unicode: escaped before it reached the browsers")
+            log.warning(
+                "studio: a GUI message held text that is not valid Unicode: escaped before it reached the browsers"
+            )
             return encode(_escaped(obj), *args, **kwargs)
 
     return safe

@@ -18,17 +18,17 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
-I = TypeVar("I")
+Inp = TypeVar("Inp")
 R = TypeVar("R")
 
 
 @dataclass(frozen=True, slots=True)
-class WorkResult(Generic[I, R]):
+class WorkResult(Generic[Inp, R]):
     """What the worker publishes for one computed input."""
 
     ticket: int
     """Increasing number of the submission this result belongs to."""
-    inputs: I
+    inputs: Inp
     """The input that was computed."""
     value: R | None
     """The computed value, or None if ``compute`` raised."""
@@ -42,20 +42,20 @@ class WorkResult(Generic[I, R]):
     """True if newer input was already waiting when this result was published."""
 
 
-class LatestWorker(Generic[I, R]):
+class LatestWorker(Generic[Inp, R]):
     """Runs ``compute`` on the newest submitted input in one daemon thread."""
 
     def __init__(
         self,
-        compute: Callable[[I], R],
-        on_result: Callable[[WorkResult[I, R]], None],
+        compute: Callable[[Inp], R],
+        on_result: Callable[[WorkResult[Inp, R]], None],
         *,
         name: str = "latest-worker",
     ) -> None:
         self._compute = compute
         self._on_result = on_result
         self._cond = threading.Condition()
-        self._pending: tuple[int, I] | None = None
+        self._pending: tuple[int, Inp] | None = None
         self._ticket = 0
         self._done_ticket = 0
         self._busy = False
@@ -63,7 +63,7 @@ class LatestWorker(Generic[I, R]):
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
-    def submit(self, inputs: I) -> int:
+    def submit(self, inputs: Inp) -> int:
         """Record ``inputs`` as the newest; returns its ticket. Never blocks on computation."""
         with self._cond:
             if self._closed:
