@@ -34,9 +34,10 @@ import math
 import os
 import tempfile
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Literal, Sequence
+from typing import Any, Literal
 
 import numpy as np
 
@@ -52,15 +53,52 @@ os.environ.setdefault("RAY_ENABLE_UV_RUN_RUNTIME_ENV", "0")
 SideChoice = Literal["right", "left", "both"]
 
 PAPER_TABLE_II_SIM: dict[str, dict[str, tuple[float, float]]] = {
-    "aiming": {"aim_mm": (166, 285), "vx": (2.6, 1.2), "vy": (-0.9, 0.4), "vz": (2.3, 0.3), "cork": (26.9, 41.6), "topback": (60.0, 129.0), "side": (-12.9, 124.6)},
-    "topspin_velocity": {"vx": (4.5, 1.3), "vy": (-0.7, 0.8), "vz": (2.0, 0.1), "cork": (33.8, 44.2), "topback": (218.0, 75.4), "side": (38.2, 143.8)},
-    "backspin": {"vx": (2.7, 0.9), "vy": (-0.9, 0.5), "vz": (1.7, 0.1), "cork": (-68.9, 70.5), "topback": (-164.7, 128.0), "side": (19.1, 113.3)},
-    "sidespin": {"vx": (3.5, 0.8), "vy": (-0.4, 0.8), "vz": (1.9, 0.1), "cork": (13.2, 44.1), "topback": (124.4, 108.0), "side": (84.3, 243.8)},
+    "aiming": {
+        "aim_mm": (166, 285),
+        "vx": (2.6, 1.2),
+        "vy": (-0.9, 0.4),
+        "vz": (2.3, 0.3),
+        "cork": (26.9, 41.6),
+        "topback": (60.0, 129.0),
+        "side": (-12.9, 124.6),
+    },
+    "topspin_velocity": {
+        "vx": (4.5, 1.3),
+        "vy": (-0.7, 0.8),
+        "vz": (2.0, 0.1),
+        "cork": (33.8, 44.2),
+        "topback": (218.0, 75.4),
+        "side": (38.2, 143.8),
+    },
+    "backspin": {
+        "vx": (2.7, 0.9),
+        "vy": (-0.9, 0.5),
+        "vz": (1.7, 0.1),
+        "cork": (-68.9, 70.5),
+        "topback": (-164.7, 128.0),
+        "side": (19.1, 113.3),
+    },
+    "sidespin": {
+        "vx": (3.5, 0.8),
+        "vy": (-0.4, 0.8),
+        "vz": (1.9, 0.1),
+        "cork": (13.2, 44.1),
+        "topback": (124.4, 108.0),
+        "side": (84.3, 243.8),
+    },
 }
 """The paper's Table II, "Sim (N = 25)" rows: mean and std of the ball at the second
 bounce per task (aim error [mm], velocity [m/s], spin components [rad/s])."""
 
-COLUMNS = {"aim_mm": "aim error [mm]", "vx": "v_x [m/s]", "vy": "v_y [m/s]", "vz": "v_z [m/s]", "cork": "cork [rad/s]", "topback": "top/back [rad/s]", "side": "side [rad/s]"}
+COLUMNS = {
+    "aim_mm": "aim error [mm]",
+    "vx": "v_x [m/s]",
+    "vy": "v_y [m/s]",
+    "vz": "v_z [m/s]",
+    "cork": "cork [rad/s]",
+    "topback": "top/back [rad/s]",
+    "side": "side [rad/s]",
+}
 """Summary columns (keys of :attr:`TrainedServe.row`) and their headings."""
 
 
@@ -104,9 +142,13 @@ class TrainConfig:
 
         task_weights(self.task)
         if self.count < 1 or self.iterations < 0 or self.population < 1 or self.tosses < 1 or self.workers < 1:
-            raise InvalidInputError(f"train: count, population, tosses and workers must be >= 1 and iterations >= 0 (got {self.count}, {self.population}, {self.tosses}, {self.workers}, {self.iterations})")
+            raise InvalidInputError(
+                f"train: count, population, tosses and workers must be >= 1 and iterations >= 0 (got {self.count}, {self.population}, {self.tosses}, {self.workers}, {self.iterations})"
+            )
         if isinstance(self.robustify, bool) or not isinstance(self.robustify, int) or self.robustify < 0:
-            raise InvalidInputError(f"train: robustify must be a whole number of candidates >= 0, got {self.robustify!r}")
+            raise InvalidInputError(
+                f"train: robustify must be a whole number of candidates >= 0, got {self.robustify!r}"
+            )
         if self.side not in ("right", "left", "both"):
             raise InvalidInputError(f"train: side must be right, left or both, got {self.side!r}")
 
@@ -151,26 +193,50 @@ def _row(ev: Any, task: str) -> dict[str, float]:
     target = task_weights(task).target
     return {
         "aim_mm": 1000.0 * float(np.hypot(sb["p"][0] - target[0], sb["p"][1] - target[1])),
-        "vx": float(sb["v"][0]), "vy": float(sb["v"][1]), "vz": float(sb["v"][2]),
-        "cork": float(sb["cork"]), "topback": float(sb["topspin"]), "side": float(sb["sidespin"]),
-    }  # fmt: skip
+        "vx": float(sb["v"][0]),
+        "vy": float(sb["v"][1]),
+        "vz": float(sb["v"][2]),
+        "cork": float(sb["cork"]),
+        "topback": float(sb["topspin"]),
+        "side": float(sb["sidespin"]),
+    }
 
 
-def _run_job(side: TossSide, seed: int, cfg: TrainConfig, run_dir: Path, *, workers: int, on_record: Callable[[dict[str, Any]], None] | None = None) -> HandServe | None:
+def _run_job(
+    side: TossSide,
+    seed: int,
+    cfg: TrainConfig,
+    run_dir: Path,
+    *,
+    workers: int,
+    on_record: Callable[[dict[str, Any]], None] | None = None,
+) -> HandServe | None:
     """One HEBO run into ``run_dir`` (resumed if it holds a log); the chosen serve."""
     from studio.optimize.optimizer import optimize_serve
 
     res = optimize_serve(
-        side=side, task=cfg.task, run_dir=run_dir, seeds=[s for s in cfg.seeds if s.side == side], iterations=cfg.iterations,
-        population=cfg.population, tosses=cfg.tosses, seed=seed, workers=workers, resume=(run_dir / "evaluations.jsonl").exists(),
-        on_record=on_record, overlap=cfg.overlap, limit_scale=cfg.limit_scale,
-    )  # fmt: skip
+        side=side,
+        task=cfg.task,
+        run_dir=run_dir,
+        seeds=[s for s in cfg.seeds if s.side == side],
+        iterations=cfg.iterations,
+        population=cfg.population,
+        tosses=cfg.tosses,
+        seed=seed,
+        workers=workers,
+        resume=(run_dir / "evaluations.jsonl").exists(),
+        on_record=on_record,
+        overlap=cfg.overlap,
+        limit_scale=cfg.limit_scale,
+    )
     if res.best is None:
         return None
     return replace(res.best, name=f"{cfg.task} {side} {seed}", task=cfg.task)
 
 
-def _ray_job(side: TossSide, seed: int, cfg: TrainConfig, run_json: str | None, log: bytes, queue: Any, index: int) -> dict[str, Any] | None:
+def _ray_job(
+    side: TossSide, seed: int, cfg: TrainConfig, run_json: str | None, log: bytes, queue: Any, index: int
+) -> dict[str, Any] | None:
     """Ray task: the run in a scratch folder seeded with the driver's partial log; records
     are streamed to the driver through ``queue``; returns the chosen serve (JSON)."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -191,7 +257,16 @@ def _ray_job(side: TossSide, seed: int, cfg: TrainConfig, run_json: str | None, 
         return best.to_json() if best is not None else None
 
 
-def _finish(index: int, run_dir: Path, seed: int, best: HandServe | None, cfg: TrainConfig, context: Any, library: Any, seconds: float) -> TrainedServe:
+def _finish(
+    index: int,
+    run_dir: Path,
+    seed: int,
+    best: HandServe | None,
+    cfg: TrainConfig,
+    context: Any,
+    library: Any,
+    seconds: float,
+) -> TrainedServe:
     """Evaluate the chosen serve on the mean toss, export it if legal, mark the run done."""
     from studio.serve.efforts import EffortLimitError
     from studio.serve.evaluate import evaluate_serve
@@ -207,11 +282,24 @@ def _finish(index: int, run_dir: Path, seed: int, best: HandServe | None, cfg: T
     entry_id, reason = None, "" if ev.legal else ev.reason
     if ev.legal:
         try:
-            entry_id = library.add(ev, provenance={"kind": "hebo", "run": str(run_dir), "seed": seed}, task=cfg.task, preparation=context.preparation(best.side)).id
+            entry_id = library.add(
+                ev,
+                provenance={"kind": "hebo", "run": str(run_dir), "seed": seed},
+                task=cfg.task,
+                preparation=context.preparation(best.side),
+            ).id
         except EffortLimitError as err:  # legal but beyond the robot's efforts: kept in the run, not exported
             reason = f"not exported: {err}"
-    done = {"id": entry_id, "legal": bool(ev.legal), "reward": float(ev.reward.total), "row": row, "reason": reason or ev.reason, "serve": best.to_json()}
-    (run_dir / "exported.json").write_text(json.dumps(done, allow_nan=False) if math.isfinite(done["reward"]) else json.dumps({**done, "reward": None}))
+    reward = float(ev.reward.total)
+    done: dict[str, Any] = {
+        "id": entry_id,
+        "legal": bool(ev.legal),
+        "reward": reward if math.isfinite(reward) else None,
+        "row": row,
+        "reason": reason or ev.reason,
+        "serve": best.to_json(),
+    }
+    (run_dir / "exported.json").write_text(json.dumps(done, allow_nan=False))
     return TrainedServe(index, run_dir, bool(ev.legal), float(ev.reward.total), row, entry_id, seconds, reason)
 
 
@@ -223,7 +311,9 @@ def _check_scale(run_dir: Path, cfg: TrainConfig) -> None:
         return
     scale = LimitScale.from_json(read_run_meta(run_dir)["limit_scale"])
     if scale != cfg.limit_scale:
-        raise InvalidInputError(f"{run_dir} was trained with limit_scale {scale.to_json()}, this call asks for {cfg.limit_scale.to_json()}: use another --runs folder")
+        raise InvalidInputError(
+            f"{run_dir} was trained with limit_scale {scale.to_json()}, this call asks for {cfg.limit_scale.to_json()}: use another --runs folder"
+        )
 
 
 def _already(index: int, run_dir: Path, cfg: TrainConfig) -> TrainedServe | None:
@@ -233,7 +323,16 @@ def _already(index: int, run_dir: Path, cfg: TrainConfig) -> TrainedServe | None
         return None
     d = json.loads(done.read_text())
     reward = d.get("reward")
-    return TrainedServe(index, run_dir, bool(d.get("legal", d.get("id") is not None)), math.nan if reward is None else float(reward), dict(d.get("row", {})), d.get("id"), 0.0, "already trained")
+    return TrainedServe(
+        index,
+        run_dir,
+        bool(d.get("legal", d.get("id") is not None)),
+        math.nan if reward is None else float(reward),
+        dict(d.get("row", {})),
+        d.get("id"),
+        0.0,
+        "already trained",
+    )
 
 
 def finished_runs(cfg: TrainConfig) -> list[TrainedServe]:
@@ -266,8 +365,8 @@ def train_serves(
     Returns:
         One :class:`TrainedServe` per run, in run order.
     """
-    from studio.serve.evaluate import EvaluationContext
     from studio.library.store import ServeLibrary
+    from studio.serve.evaluate import EvaluationContext
 
     library = ServeLibrary(library_dir)
     context = EvaluationContext.default()
@@ -288,7 +387,15 @@ def train_serves(
     return [results[i] for i in sorted(results)]
 
 
-def _train_on_ray(cfg: TrainConfig, todo: list[tuple[int, TossSide, int, Path]], address: str, context: Any, library: Any, results: dict[int, TrainedServe], progress: Callable[[TrainedServe, int], None] | None) -> None:
+def _train_on_ray(
+    cfg: TrainConfig,
+    todo: list[tuple[int, TossSide, int, Path]],
+    address: str,
+    context: Any,
+    library: Any,
+    results: dict[int, TrainedServe],
+    progress: Callable[[TrainedServe, int], None] | None,
+) -> None:
     import ray
     from ray.util.queue import Empty, Queue
 
@@ -361,11 +468,18 @@ def summary_table(results: Sequence[TrainedServe], task: str) -> str:
     paper's Table II simulation row for ``task``."""
     legal = [r.row for r in results if r.legal and r.row]
     cols = list(COLUMNS) if task == "aiming" else [c for c in COLUMNS if c != "aim_mm"]
-    lines = [f"{task}: {len(legal)} legal of {len(results)} trained serves (simulation, ball at the second bounce; mean ± std)", ""]
+    lines = [
+        f"{task}: {len(legal)} legal of {len(results)} trained serves (simulation, ball at the second bounce; mean ± std)",
+        "",
+    ]
     lines.append("| | N | " + " | ".join(COLUMNS[c] for c in cols) + " |")
     lines.append("| --- | --- |" + " --- |" * len(cols))
     lines.append(f"| this run | {len(legal)} | " + " | ".join(_stats(legal, c) for c in cols) + " |")
     paper = PAPER_TABLE_II_SIM.get(task)
     if paper is not None:
-        lines.append("| paper, Sim | 25 | " + " | ".join(f"{paper[c][0]:.1f} ± {paper[c][1]:.1f}" if c in paper else "N/A" for c in cols) + " |")
+        lines.append(
+            "| paper, Sim | 25 | "
+            + " | ".join(f"{paper[c][0]:.1f} ± {paper[c][1]:.1f}" if c in paper else "N/A" for c in cols)
+            + " |"
+        )
     return "\n".join(lines)
