@@ -33,8 +33,9 @@ import functools
 import io
 import logging
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -113,7 +114,16 @@ class HeboConfig:
     @classmethod
     def hebo_defaults(cls) -> HeboConfig:
         """HEBO 0.3.6's own settings (no cap, NSGA-II 100 x 100 on mixed variables, 100 GP epochs, one torch thread)."""
-        return cls(max_train=None, es_pop=100, es_iters=100, gp_epochs=100, vector_nsga=False, fast_gp=False, fantasize=False, torch_threads=1)
+        return cls(
+            max_train=None,
+            es_pop=100,
+            es_iters=100,
+            gp_epochs=100,
+            vector_nsga=False,
+            fast_gp=False,
+            fantasize=False,
+            torch_threads=1,
+        )
 
     def to_json(self) -> dict[str, Any]:
         return {name: getattr(self, name) for name in self.__slots__}  # type: ignore[attr-defined]
@@ -161,7 +171,9 @@ def _vector_acq_problem_class() -> type:
             import torch
 
             with torch.no_grad():
-                v = self.acq(torch.from_numpy(np.asarray(X, dtype=np.float32)), torch.zeros((len(X), 0), dtype=torch.long))
+                v = self.acq(
+                    torch.from_numpy(np.asarray(X, dtype=np.float32)), torch.zeros((len(X), 0), dtype=torch.long)
+                )
             out["F"] = v[:, : self.acq.num_obj].numpy()
             if self.acq.num_constr:
                 out["G"] = v[:, self.acq.num_obj :].numpy()
@@ -187,9 +199,13 @@ class HeboAdapter:
         self.penalty = float(penalty)
         self._h = _import_hebo()
         self.names = [f"g{i}" for i in range(self.dim)]
-        self.space = self._h["DesignSpace"]().parse([{"name": n, "type": "num", "lb": 0.0, "ub": 1.0} for n in self.names])
+        self.space = self._h["DesignSpace"]().parse(
+            [{"name": n, "type": "num", "lb": 0.0, "ub": 1.0} for n in self.names]
+        )
         with self._quiet():
-            self.hebo = self._h["HEBO"](self.space, model_name="gp", rand_sample=config.rand_sample, scramble_seed=self.seed)
+            self.hebo = self._h["HEBO"](
+                self.space, model_name="gp", rand_sample=config.rand_sample, scramble_seed=self.seed
+            )
         self.hebo._model_config = {
             "lr": config.gp_lr,
             "num_epochs": config.gp_epochs,
@@ -337,13 +353,17 @@ class HeboAdapter:
                 model = h["get_model"]("gp", space.num_numeric, space.num_categorical, 1, **self.hebo.model_config)
             model.fit(X, Xe, y_t)
             if cfg.fast_gp and (model.failed_steps or any(model.jitters_used)):
-                LOG.debug("hebo: GP fit needed jitter up to %g (%d epochs skipped)", max(model.jitters_used, default=0.0), model.failed_steps)
+                LOG.debug(
+                    "hebo: GP fit needed jitter up to %g (%d epochs skipped)",
+                    max(model.jitters_used, default=0.0),
+                    model.failed_steps,
+                )
             return model
 
         try:  # HEBO's target warping, then its fallback on the raw targets
             std = yy.std() if yy.std() > 0 else 1.0
             method = "yeo-johnson" if yy.min() <= 0 else "box-cox"
-            y_t = torch.FloatTensor(power_transform(yy / std, method=method))
+            y_t: torch.Tensor = torch.FloatTensor(power_transform(yy / std, method=method))
             if method == "box-cox" and y_t.std() < 0.5:
                 y_t = torch.FloatTensor(power_transform(yy / std, method="yeo-johnson"))
             if y_t.std() < 0.5:
@@ -355,7 +375,9 @@ class HeboAdapter:
 
         if len(pending) and cfg.fantasize:
             if not cfg.fast_gp:
-                raise InvalidInputError("HeboConfig.fantasize needs fast_gp (HEBO's gpytorch GP cannot add pending points)")
+                raise InvalidInputError(
+                    "HeboConfig.fantasize needs fast_gp (HEBO's gpytorch GP cannot add pending points)"
+                )
             Pdf = pd.DataFrame(pending, columns=self.names)
             model.condition_on(space.transform(Pdf)[0])
         best_id = int(np.argmin(yy.reshape(-1)))
@@ -369,7 +391,9 @@ class HeboAdapter:
         mu, sig = h["Mean"](model), h["Sigma"](model, linear_a=-1.0)
 
         if cfg.vector_nsga:
-            init = pd.concat([best_x, space.sample(cfg.es_pop)], axis=0).head(cfg.es_pop)[self.names].to_numpy(dtype=float)
+            init = (
+                pd.concat([best_x, space.sample(cfg.es_pop)], axis=0).head(cfg.es_pop)[self.names].to_numpy(dtype=float)
+            )
             prob: Any = _vector_acq_problem_class()(acq, self.dim)
             algo = h["NSGA2"](pop_size=cfg.es_pop, sampling=init, eliminate_duplicates=True)
         else:  # HEBO's own mixed-variable setup

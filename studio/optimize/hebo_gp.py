@@ -109,7 +109,12 @@ class FastGP:
     def _constrained(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """(noise, mean, output scale, length scales (d,)) from the raw parameters."""
         sp = torch.nn.functional.softplus
-        return sp(self.raw_noise) + self.noise_lb, self.raw_constant, sp(self.raw_outputscale), sp(self.raw_lengthscale).reshape(-1)
+        return (
+            sp(self.raw_noise) + self.noise_lb,
+            self.raw_constant,
+            sp(self.raw_outputscale),
+            sp(self.raw_lengthscale).reshape(-1),
+        )
 
     def loss(self) -> Tensor:
         """gpytorch's ``-ExactMarginalLogLikelihood`` (priors included) at the current parameters."""
@@ -215,4 +220,9 @@ class FastGP:
 
     def hyperparameters(self) -> dict[str, Any]:
         """Fitted values (scaled units): noise, mean, output scale, length scales."""
-        return {"noise": float(self._noise), "mean": float(self._c), "outputscale": float(self._os), "lengthscale": np.asarray(self._ls, dtype=float).tolist()}
+        return {
+            "noise": float(self._noise),
+            "mean": float(self._c),
+            "outputscale": float(self._os),
+            "lengthscale": np.asarray(self._ls, dtype=float).tolist(),
+        }

@@ -49,21 +49,22 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from studio.errors import DataFileError, InvalidInputError, StudioError
 from studio.optimize.hebo_adapter import HeboAdapter, HeboConfig
-from studio.storage.jsonlog import ensure_line_end, read_jsonl, write_line
-from studio.serve.reward import PLANNER_FAILURE_PENALTY
-from studio.serve.params import GENE_NAMES, GenomeBounds, HandServe, LimitScale, ServeParams, TossSide
 from studio.optimize.threads import THREAD_VARS, single_thread_env
+from studio.serve.params import GENE_NAMES, GenomeBounds, HandServe, LimitScale, ServeParams, TossSide
+from studio.serve.reward import PLANNER_FAILURE_PENALTY
+from studio.storage.jsonlog import ensure_line_end, read_jsonl, write_line
 
 __all__ = [
     "HeboConfig",
@@ -92,12 +93,16 @@ TAU_MIN_HEIGHT = 0.05
 """Latest contact: when the mean ball centre falls to this height above the playing surface [m]."""
 
 
+DEFAULT_BOUNDS = GenomeBounds()
+"""The paper's genome bounds (:class:`studio.serve.params.GenomeBounds` defaults)."""
+
+
 def bounds_for_toss(
     toss: Any,
     *,
     after_apex: float = TAU_AFTER_APEX,
     min_height: float = TAU_MIN_HEIGHT,
-    base: GenomeBounds = GenomeBounds(),
+    base: GenomeBounds = DEFAULT_BOUNDS,
 ) -> GenomeBounds:
     """Genome bounds whose tau range [s, toss clock] follows the toss model.
 
@@ -117,8 +122,12 @@ def bounds_for_toss(
     else:
         hi = float(t[-1])
     if not lo < hi:
-        raise InvalidInputError(f"bounds_for_toss: the {getattr(toss, 'side', '?')} toss gives no contact window (apex {t[i_apex]:.3f} s, low {lo:.3f} s >= high {hi:.3f} s)")
-    return GenomeBounds(tau=(lo, hi), velocity=base.velocity, yaw=base.yaw, roll=base.roll, t_return=base.t_return, offset=base.offset)
+        raise InvalidInputError(
+            f"bounds_for_toss: the {getattr(toss, 'side', '?')} toss gives no contact window (apex {t[i_apex]:.3f} s, low {lo:.3f} s >= high {hi:.3f} s)"
+        )
+    return GenomeBounds(
+        tau=(lo, hi), velocity=base.velocity, yaw=base.yaw, roll=base.roll, t_return=base.t_return, offset=base.offset
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -297,14 +306,24 @@ def _context() -> Any:
     return _WORKER_CONTEXT
 
 
-def evaluate_outcome(serve: HandServe, *, task: str, tosses: int, min_legal_fraction: float, rng: np.random.Generator, context: Any = None) -> Outcome:
+def evaluate_outcome(
+    serve: HandServe,
+    *,
+    task: str,
+    tosses: int,
+    min_legal_fraction: float,
+    rng: np.random.Generator,
+    context: Any = None,
+) -> Outcome:
     """Evaluate ``serve`` on the mean toss (``tosses == 1``) or on ``tosses`` recorded tosses."""
     from studio.serve.evaluate import evaluate_robust, evaluate_serve
 
     ctx = context if context is not None else _context()
     if tosses <= 1:
         ev = evaluate_serve(serve, ctx, task=task)
-        return Outcome(float(ev.reward.total), bool(ev.legal), str(ev.status), ev.failed_check, 1.0 if ev.legal else 0.0)
+        return Outcome(
+            float(ev.reward.total), bool(ev.legal), str(ev.status), ev.failed_check, 1.0 if ev.legal else 0.0
+        )
     rob = evaluate_robust(serve, ctx, task=task, tosses=tosses, min_legal_fraction=min_legal_fraction, rng=rng)
     counts = rob.failed_checks()
     failed = None if rob.legal or not counts else max(counts, key=lambda c: counts[c])  # the check most tosses failed
@@ -348,7 +367,12 @@ class EvaluatorPool:
         self.limit_scale = limit_scale if limit_scale is not None else LimitScale()
         self._pool: ProcessPoolExecutor | None = None
         if evaluate is None and workers > 1:
-            self._pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_worker_init, initargs=(side, self._ipopt_fallback, os.getpid()))
+            self._pool = ProcessPoolExecutor(
+                workers,
+                mp_context=mp.get_context("spawn"),
+                initializer=_worker_init,
+                initargs=(side, self._ipopt_fallback, os.getpid()),
+            )
             # spawn every worker now (submit starts the processes), with the single-thread
             # variables in its environment from the start (set in os.environ of this
             # process only while spawning); they initialize while the caller goes on
@@ -393,7 +417,9 @@ class EvaluatorPool:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
-    def map(self, X: npt.NDArray[np.float64], *, tosses: int, rng_seeds: Sequence[int]) -> Iterator[tuple[Outcome, float]]:
+    def map(
+        self, X: npt.NDArray[np.float64], *, tosses: int, rng_seeds: Sequence[int]
+    ) -> Iterator[tuple[Outcome, float]]:
         """(outcome, seconds) per row of physical genomes X (n, 10), in order, as they finish.
 
         With worker processes every row is submitted at once, before this returns (the
@@ -405,7 +431,10 @@ class EvaluatorPool:
         scale = self.limit_scale.to_json()
         pool = self._pool
         try:
-            futs = [pool.submit(_worker_eval, (self.side, self.task, [float(v) for v in x], tosses, self.p, int(s), scale)) for x, s in zip(X, rng_seeds)]
+            futs = [
+                pool.submit(_worker_eval, (self.side, self.task, [float(v) for v in x], tosses, self.p, int(s), scale))
+                for x, s in zip(X, rng_seeds)
+            ]
         except BrokenProcessPool:
             raise self._died() from None
 
@@ -420,10 +449,14 @@ class EvaluatorPool:
 
         return results()
 
-    def _map_here(self, X: npt.NDArray[np.float64], tosses: int, rng_seeds: Sequence[int]) -> Iterator[tuple[Outcome, float]]:
+    def _map_here(
+        self, X: npt.NDArray[np.float64], tosses: int, rng_seeds: Sequence[int]
+    ) -> Iterator[tuple[Outcome, float]]:
         for x, s in zip(X, rng_seeds):
             t0 = time.perf_counter()
-            serve = HandServe(name="candidate", side=self.side, params=ServeParams.from_vector(x), limit_scale=self.limit_scale)
+            serve = HandServe(
+                name="candidate", side=self.side, params=ServeParams.from_vector(x), limit_scale=self.limit_scale
+            )
             rng = np.random.default_rng(s)
             if self._evaluate is not None:
                 out = self._evaluate(serve, tosses, rng)
@@ -433,7 +466,9 @@ class EvaluatorPool:
 
                     self._context = EvaluationContext.for_training(ipopt_fallback=self._ipopt_fallback)
                 ctx = self._context
-                out = evaluate_outcome(serve, task=self.task, tosses=tosses, min_legal_fraction=self.p, rng=rng, context=ctx)
+                out = evaluate_outcome(
+                    serve, task=self.task, tosses=tosses, min_legal_fraction=self.p, rng=rng, context=ctx
+                )
             yield out, time.perf_counter() - t0
 
 
@@ -441,7 +476,14 @@ class EvaluatorPool:
 
 
 def _bounds_json(b: GenomeBounds) -> dict[str, Any]:
-    return {"tau": list(b.tau), "velocity": list(b.velocity), "yaw": list(b.yaw), "roll": list(b.roll), "t_return": list(b.t_return), "offset": b.offset}
+    return {
+        "tau": list(b.tau),
+        "velocity": list(b.velocity),
+        "yaw": list(b.yaw),
+        "roll": list(b.roll),
+        "t_return": list(b.t_return),
+        "offset": b.offset,
+    }
 
 
 def _read_jsonl(path: Path) -> list[EvaluationRecord]:
@@ -598,7 +640,9 @@ def _log_summary(run_dir: Path) -> tuple[int, float]:
     return out
 
 
-def list_runs(runs_dir: str | Path, *, side: str | None = None, task: str | None = None) -> tuple[list[RunSummary], list[str]]:
+def list_runs(
+    runs_dir: str | Path, *, side: str | None = None, task: str | None = None
+) -> tuple[list[RunSummary], list[str]]:
     """The optimization runs directly inside ``runs_dir`` (newest folder name first),
     optionally only those of ``side`` and ``task``, and one message per folder that holds a
     ``run.json`` but cannot be read (file and field named). An absent folder has no runs."""
@@ -607,7 +651,9 @@ def list_runs(runs_dir: str | Path, *, side: str | None = None, task: str | None
     folder = Path(runs_dir)
     if not folder.is_dir():
         return runs, problems
-    for run_dir in sorted((d for d in folder.iterdir() if (d / "run.json").is_file()), key=lambda d: d.name, reverse=True):
+    for run_dir in sorted(
+        (d for d in folder.iterdir() if (d / "run.json").is_file()), key=lambda d: d.name, reverse=True
+    ):
         try:
             meta = read_run_meta(run_dir)
             if (side is not None and meta.get("side") != side) or (task is not None and meta.get("task") != task):
@@ -619,7 +665,11 @@ def list_runs(runs_dir: str | Path, *, side: str | None = None, task: str | None
                 evaluations=evaluations, best_reward=best,
             ))  # fmt: skip
         except (DataFileError, KeyError, TypeError, ValueError) as exc:
-            problems.append(str(exc) if isinstance(exc, DataFileError) else f"{run_dir / 'run.json'}: missing or malformed field ({exc!r})")
+            problems.append(
+                str(exc)
+                if isinstance(exc, DataFileError)
+                else f"{run_dir / 'run.json'}: missing or malformed field ({exc!r})"
+            )
     return runs, problems
 
 
@@ -735,9 +785,20 @@ def optimize_serve(
     if old is not None and not seeds and old.get("seeds"):  # and its own seeds (run.json keeps them)
         from studio.serve.params import serve_from_json
 
-        seeds = [serve_from_json(d, source=f"{Path(run_dir) / 'run.json'}: seeds[{i}]") for i, d in enumerate(old["seeds"])]
+        seeds = [
+            serve_from_json(d, source=f"{Path(run_dir) / 'run.json'}: seeds[{i}]") for i, d in enumerate(old["seeds"])
+        ]
     # the workers start first and initialize while this process loads the toss model and HEBO
-    with EvaluatorPool(side=side, task=task, workers=workers, min_legal_fraction=min_legal_fraction, evaluate=evaluate, context=context, ipopt_fallback=ipopt_fallback, limit_scale=limit_scale) as pool:
+    with EvaluatorPool(
+        side=side,
+        task=task,
+        workers=workers,
+        min_legal_fraction=min_legal_fraction,
+        evaluate=evaluate,
+        context=context,
+        ipopt_fallback=ipopt_fallback,
+        limit_scale=limit_scale,
+    ) as pool:
         if bounds is None:
             if context is not None:
                 toss = context.toss_model(side)
@@ -788,18 +849,36 @@ def optimize_serve(
                 try:
                     config = HeboConfig(**cfg_old)
                 except (TypeError, InvalidInputError) as exc:
-                    raise InvalidInputError(f"resume: {run_dir / 'run.json'}: unusable HEBO configuration {cfg_old!r} ({exc})") from exc
+                    raise InvalidInputError(
+                        f"resume: {run_dir / 'run.json'}: unusable HEBO configuration {cfg_old!r} ({exc})"
+                    ) from exc
                 run_json["config"] = config.to_json()
-            for key in ("side", "task", "seed", "population", "tosses", "bounds", "config", "min_legal_fraction", "ipopt_fallback", "overlap", "limit_scale"):
+            for key in (
+                "side",
+                "task",
+                "seed",
+                "population",
+                "tosses",
+                "bounds",
+                "config",
+                "min_legal_fraction",
+                "ipopt_fallback",
+                "overlap",
+                "limit_scale",
+            ):
                 if old.get(key) != json.loads(json.dumps(run_json[key])):
-                    raise InvalidInputError(f"resume: {run_dir / 'run.json'} has {key}={old.get(key)!r}, this call has {run_json[key]!r}")
+                    raise InvalidInputError(
+                        f"resume: {run_dir / 'run.json'} has {key}={old.get(key)!r}, this call has {run_json[key]!r}"
+                    )
             records = _read_jsonl(log_path)
         elif log_path.exists() and log_path.stat().st_size > 0:
             if resume:
                 raise InvalidInputError(f"cannot resume {log_path}: {run_dir / 'run.json'} is missing")
             raise InvalidInputError(f"{log_path} already holds a run: pass resume=True or use another run_dir")
         if overlap and config.fantasize and not config.fast_gp:
-            raise InvalidInputError("overlapped suggestions with HeboConfig.fantasize need HeboConfig.fast_gp (HEBO's gpytorch GP cannot take pending points): set fantasize=False or overlap=False")
+            raise InvalidInputError(
+                "overlapped suggestions with HeboConfig.fantasize need HeboConfig.fast_gp (HEBO's gpytorch GP cannot take pending points): set fantasize=False or overlap=False"
+            )
         (run_dir / "run.json").write_text(json.dumps(run_json, indent=2))
 
         opt = HeboAdapter(len(GENE_NAMES), seed=seed, config=config, penalty=penalty)
@@ -817,7 +896,13 @@ def optimize_serve(
             r = max(records, key=lambda r: r.reward)
             return r.reward, ServeParams.from_vector([r.params[g] for g in GENE_NAMES])
 
-        def run_batch(Z: npt.NDArray[np.float64], batch: int, sources: list[str], pool: EvaluatorPool, meanwhile: Callable[[], None] | None = None) -> None:
+        def run_batch(
+            Z: npt.NDArray[np.float64],
+            batch: int,
+            sources: list[str],
+            pool: EvaluatorPool,
+            meanwhile: Callable[[], None] | None = None,
+        ) -> None:
             """Evaluate, log and observe the batch Z; ``meanwhile`` runs after the batch was
             handed to the worker processes, before its results are collected."""
             X = low + Z * (high - low)
@@ -884,15 +969,19 @@ def optimize_serve(
                     stopped = True
                     break
                 t0 = time.perf_counter()
-                Z = ahead.pop(it, None)
-                if Z is None or len(Z) != missing:
+                queued = ahead.pop(it) if it in ahead else None
+                if queued is not None and len(queued) == missing:
+                    Z = queued
+                else:
                     Z = opt.suggest(missing, upto=usable(it), skip=len(records), pending=pending(it))
                 timings["suggest"] += time.perf_counter() - t0
 
-                def suggest_next(nxt: int = it + 1) -> None:
+                def suggest_next(nxt: int = it + 1, batch: np.ndarray = Z) -> None:
                     if nxt < iterations and not (stop is not None and stop.is_set()):
                         t1 = time.perf_counter()
-                        ahead[nxt] = opt.suggest(population, upto=usable(nxt), skip=len(records) + len(Z), pending=pending(nxt, Z))
+                        ahead[nxt] = opt.suggest(
+                            population, upto=usable(nxt), skip=len(records) + len(batch), pending=pending(nxt, batch)
+                        )
                         timings["suggest"] += time.perf_counter() - t1
                         timings["suggest_overlapped"] += time.perf_counter() - t1
 
