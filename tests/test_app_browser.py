@@ -349,8 +349,8 @@ def test_break_a_serve_see_the_pinned_one_beside_it_and_undo(studio, page) -> No
     page.get_by_role("tab", name="Serve", exact=True).click()
     _close_toasts(page)
     page.get_by_role("button", name="Pin as A").click()
-    _wait(lambda: app.pin is not None, 10, "the pin")
-    assert app.pin.controls == good and "/ghost/flight" in app.scene.ghost_nodes
+    _wait(lambda: app.pin is not None and "/ghost/flight" in app.scene.ghost_nodes, 20, "the pin and its ghost")  # drawn after the pin
+    assert app.pin.controls.serve == good.serve
     _set_number(page, "v_z", 4.5)
     _wait(lambda: app.worker.wait_idle(0.1) and app.last is not None and app.last.serve.params.velocity[2] == pytest.approx(4.5), 60, "the broken serve")
     broken = app.last
