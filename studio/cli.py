@@ -189,7 +189,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     """Plan, simulate, check and score a serve file; optionally export it to a serve library."""
     import json
 
-    from studio.serve.evaluate import EvaluationContext, effort_report
+    from studio.serve.efforts import effort_report
+    from studio.serve.evaluate import EvaluationContext
 
     _check_evaluate_args(args)
     effort_limits = _effort_limits(args)

@@ -20,10 +20,10 @@ import numpy.typing as npt
 import pinocchio as pin
 import pytest
 
-from studio.robot.cup_hold import CUP_SAFETY_FACTOR, CupGrip, check_cup_hold
 from studio.errors import InvalidInputError
-from studio.robot.model import Robot, load_robot
+from studio.robot.cup_hold import CUP_SAFETY_FACTOR, CupGrip, check_cup_hold
 from studio.robot.description import BALL_CUP_FRAME, load_spec
+from studio.robot.model import Robot, load_robot
 
 EXAMPLES = sorted((Path(__file__).resolve().parent.parent / "examples" / "serves").glob("*.json"))
 DT = 1e-3
@@ -141,8 +141,9 @@ def _limits_only_preparation(robot: Robot, u_toss0: FloatArray) -> FloatArray:
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[str, dict, dict]]:
     """Every example serve exported to a library: (name, index entry, NPZ arrays)."""
-    from studio.serve.evaluate import EvaluationContext, effort_report, evaluate_serve
     from studio.library.store import INDEX_NAME, ServeLibrary
+    from studio.serve.efforts import effort_report
+    from studio.serve.evaluate import EvaluationContext, evaluate_serve
     from studio.serve.params import load_serve
 
     folder = tmp_path_factory.mktemp("lib")
@@ -150,8 +151,8 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[str, dict, 
     for path in EXAMPLES:
         serve = load_serve(path)
         ev = evaluate_serve(serve, context, task=serve.task or "topspin_velocity")
-        efforts = effort_report(ev.motion, context.robot).raised_to_peaks()  # the x1.5 / x2 examples exceed gantry_x (test_efforts)
-        ServeLibrary(folder).add(ev, effort_limits={n: float(v) for n, v in zip(efforts.names, efforts.limit) if n in efforts.raised})
+        efforts = effort_report(ev.motion, context.robot)  # the x1.5 / x2 examples exceed gantry_x (test_efforts)
+        ServeLibrary(folder).add(ev, effort_limits=efforts.peak_limits() if efforts is not None else {})
     out = []
     for entry in json.loads((folder / INDEX_NAME).read_text())["serves"]:
         with np.load(folder / entry["arrays"], allow_pickle=False) as npz:

@@ -14,11 +14,11 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from studio.serve.efforts import EffortLimitError, EffortReport, parse_limits
 from studio.errors import InvalidInputError
-from studio.serve.evaluate import EvaluationContext, effort_report, evaluate_serve
 from studio.library.store import INDEX_NAME, ServeLibrary
 from studio.paths import robots_dir
+from studio.serve.efforts import EffortLimitError, EffortReport, effort_report, parse_limits
+from studio.serve.evaluate import EvaluationContext, evaluate_serve
 from studio.serve.params import load_serve
 
 SERVES = Path(__file__).resolve().parent.parent / "examples" / "serves"

@@ -10,9 +10,9 @@ import pytest
 
 from studio.errors import InvalidInputError
 from studio.serve.evaluate import EvaluationContext, evaluate_robust, evaluate_serve, report_markdown
-from studio.ui.scene import scene_frame
-from studio.serve.reward import PLANNER_FAILURE_PENALTY
 from studio.serve.params import HandServe, ServeParams, load_serve
+from studio.serve.reward import PLANNER_FAILURE_PENALTY
+from studio.ui.scene import scene_frame
 
 EXAMPLES = sorted((Path(__file__).resolve().parent.parent / "examples" / "serves").glob("*.json"))
 
@@ -163,7 +163,8 @@ def test_dynamic_limit_expansion_plans_what_the_robots_limits_cannot(context: Ev
 
 
 def test_effort_report_of_a_planned_serve(context: EvaluationContext) -> None:
-    from studio.serve.evaluate import effort_report, plan_motion
+    from studio.serve.efforts import effort_report
+    from studio.serve.evaluate import plan_motion
 
     motion = plan_motion(load_serve(Path(__file__).resolve().parent.parent / "examples" / "serves" / "topspin_right.json"), context)
     rep = effort_report(motion, context.robot)

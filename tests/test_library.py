@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from studio.errors import DataFileError, InvalidInputError
-from studio.serve.evaluate import EvaluationContext, evaluate_serve
 from studio.library.store import INDEX_NAME, ServeLibrary
+from studio.serve.evaluate import EvaluationContext, evaluate_serve
 from studio.serve.params import load_serve
 
 EXAMPLE = sorted((Path(__file__).resolve().parent.parent / "examples" / "serves").glob("topspin_right.json"))[0]
@@ -86,8 +86,8 @@ def test_exported_arrays_end_with_the_joints_at_rest(tmp_path: Path, evaluation)
 def test_exported_efforts_are_on_the_npz_clock_and_cover_the_preparation(tmp_path: Path, evaluation) -> None:  # type: ignore[no-untyped-def]
     """The effort report equals RNEA recomputed from the exported arrays (speeds by central
     differences of q, accelerations from the joint model), with peak times on the NPZ's t."""
-    from studio.serve.evaluate import effort_report
     from studio.robot.model import load_robot
+    from studio.serve.efforts import effort_report
 
     robot = load_robot()
     rep = effort_report(evaluation.motion, robot)
@@ -190,7 +190,7 @@ def test_export_records_the_limit_scale_and_the_limits_it_needs(tmp_path: Path) 
 
 
 def test_export_records_the_peak_joint_efforts(tmp_path: Path) -> None:
-    from studio.serve.evaluate import effort_report
+    from studio.serve.efforts import effort_report
 
     context = EvaluationContext.default()
     ev = evaluate_serve(load_serve(EXAMPLE), context)

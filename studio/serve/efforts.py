@@ -82,28 +82,27 @@ class EffortReport:
         new = np.array([checked.get(n, lim) for n, lim in zip(self.names, self.limit)])
         return replace(self, limit=new, raised=tuple(n for n in self.names if n in checked or n in self.raised))
 
+    def peak_limits(self) -> dict[str, float]:
+        """The limits that would let this plan pass: each exceeded joint's peak rounded up
+        to 1 % (joint name -> limit [N | N m]; empty when within)."""
+        return {n: _round_up(float(p)) for n, p, lim in zip(self.names, self.peak, self.limit) if p > lim}
+
     def raised_to_peaks(self) -> EffortReport:
-        """Every exceeded joint's limit raised to its peak rounded up to 1 % (the studio's
-        "export beyond the effort limits")."""
-        return self.with_limits(
-            {n: _round_up(float(p)) for n, p, u in zip(self.names, self.peak, self.usage) if u > 1.0}
-        )
+        """This report with every exceeded joint's limit raised to :meth:`peak_limits`."""
+        return self.with_limits(self.peak_limits())
 
     def require_within(self) -> None:
         """Raise :class:`EffortLimitError` naming every exceeded joint, its peak and limit,
         and how to raise the limit."""
-        if self.within:
+        needed = self.peak_limits()
+        if not needed:
             return
         rows = ", ".join(
             f"{n} {p:.4g} > {lim:.4g} ({100 * p / lim:.0f} %)"
             for n, p, lim in zip(self.names, self.peak, self.limit)
-            if p > lim
+            if n in needed
         )
-        flags = " ".join(
-            f"--effort-limit {n}={_round_up(float(p)):g}"
-            for n, p, lim in zip(self.names, self.peak, self.limit)
-            if p > lim
-        )
+        flags = " ".join(f"--effort-limit {n}={v:g}" for n, v in needed.items())
         raise EffortLimitError(
             f"the plan needs more than the effort limits allow: {rows} [N | N m]; export refused. "
             f"Lower the serve's limit scale, or raise the limit on purpose if the drive allows it ({flags})"

@@ -43,7 +43,6 @@ from studio.physics.ball import (
 )
 from studio.physics.court import DEFAULT_COURT
 from studio.robot.model import JointDynamics, Robot, load_robot
-from studio.serve.efforts import EffortReport, effort_report  # noqa: F401  (re-exported: studio.serve.evaluate.effort_report)
 from studio.serve.params import HandServe, LimitScale, TossSide
 from studio.serve.reward import PLANNER_FAILURE_PENALTY, RewardTerms, RewardWeights, reward, task_weights
 from studio.serve.rules import LegalityReport, RuleParams, ServeOutcome, check_serve, net_crossing

@@ -31,7 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from studio.errors import DataFileError, InvalidInputError
-from studio.storage.jsonfile import lone_surrogate
+from studio.storage.jsonfile import lone_surrogate, read_json_file
 
 if TYPE_CHECKING:
     from studio.robot.model import JointLimits
@@ -458,8 +458,6 @@ def serve_from_json(data: Any, *, source: str = "<serve>") -> HandServe:
 def load_serve(path: str | Path) -> HandServe:
     """Read and validate a hand-designed serve JSON file (strict JSON of at most
     :data:`MAX_SERVE_BYTES`, :mod:`studio.storage.jsonfile`)."""
-    from studio.storage.jsonfile import read_json_file  # noqa: PLC0415
-
     return serve_from_json(read_json_file(path, max_bytes=MAX_SERVE_BYTES), source=str(path))
 
 

@@ -91,19 +91,25 @@ def parse_json(
     where = f"line {line}: " if line is not None else ""
     if isinstance(text, bytes):
         text = decode_text(text, path, line=line)
-    depth = _max_depth(text)
-    if depth > max_depth:
-        raise DataFileError(path, f"{where}nested {depth} levels deep, more than the {max_depth} allowed")
     try:
         doc = json.loads(text, parse_constant=float, parse_int=_int)
-    except json.JSONDecodeError as err:
-        raise DataFileError(path, f"{where}not valid JSON (line {err.lineno}, column {err.colno}): {err.msg}") from None
-    except _Refused as err:
-        raise DataFileError(path, f"{where}{err}") from None
-    except (ValueError, RecursionError) as err:
+    except (ValueError, RecursionError) as err:  # the rare path: a too deep text is named as such first
+        _check_depth(_max_depth(text), path, where, max_depth)
+        if isinstance(err, json.JSONDecodeError):
+            raise DataFileError(
+                path, f"{where}not valid JSON (line {err.lineno}, column {err.colno}): {err.msg}"
+            ) from None
+        if isinstance(err, _Refused):
+            raise DataFileError(path, f"{where}{err}") from None
         raise DataFileError(path, f"{where}not valid JSON ({err or 'nested too deeply'})") from None
+    _check_depth(_doc_depth(doc), path, where, max_depth)
     check_values(doc, path, prefix=where, infinity_at=infinity_at)
     return doc
+
+
+def _check_depth(depth: int, path: str | Path, where: str, max_depth: int) -> None:
+    if depth > max_depth:
+        raise DataFileError(path, f"{where}nested {depth} levels deep, more than the {max_depth} allowed")
 
 
 def check_values(
@@ -168,8 +174,20 @@ def _int(text: str) -> int:
     return int(text)
 
 
+def _doc_depth(doc: Any) -> int:
+    """Deepest nesting of arrays and objects in a decoded document (iterative)."""
+    deepest = 0
+    stack: list[tuple[Any, int]] = [(doc, 0)]
+    while stack:
+        value, depth = stack.pop()
+        if isinstance(value, dict | list):
+            deepest = max(deepest, depth + 1)
+            stack.extend((item, depth + 1) for item in (value.values() if isinstance(value, dict) else value))
+    return deepest
+
+
 def _max_depth(text: str) -> int:
-    """Deepest bracket nesting of ``text`` outside strings (cheap pre-check)."""
+    """Deepest bracket nesting of ``text`` outside strings (for texts the decoder refused)."""
     depth = deepest = 0
     in_string = escaped = False
     for ch in text:

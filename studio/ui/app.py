@@ -36,14 +36,8 @@ from pathlib import Path
 from typing import Any
 
 from studio.errors import DataFileError, StudioError
-from studio.serve.evaluate import (
-    EffortReport,
-    Evaluation,
-    EvaluationContext,
-    effort_report,
-    evaluate_serve,
-    report_markdown,
-)
+from studio.serve.efforts import EffortReport, effort_report
+from studio.serve.evaluate import Evaluation, EvaluationContext, evaluate_serve, report_markdown
 from studio.serve.params import HandServe
 from studio.ui import wire
 from studio.ui.camera import (

@@ -299,12 +299,7 @@ class FilesPanel:
         if evaluation is None:
             self.host.message("**Export failed:** nothing evaluated yet")
             return
-        raised = efforts.raised_to_peaks() if efforts is not None and self.export_beyond.value else None
-        limits = (
-            {n: float(lim) for n, lim in zip(raised.names, raised.limit) if n in raised.raised}
-            if raised is not None
-            else {}
-        )
+        limits = efforts.peak_limits() if efforts is not None and self.export_beyond.value else {}
         library_dir = self.host.library_dir
         try:
             entry = ServeLibrary(library_dir).add(
