@@ -91,7 +91,7 @@ def test_adapter_suggestions_identical_with_either_gp() -> None:
     y[rng.random(60) < 0.2] = 10.0
     out = []
     for fast in (False, True):
-        a = HeboAdapter(4, seed=3, config=HeboConfig(fast_gp=fast, gp_epochs=15, es_pop=16, es_iters=5))
+        a = HeboAdapter(4, seed=3, config=HeboConfig(fast_gp=fast, gp_epochs=15, es_pop=16, es_iters=5, refit_every=None))  # cold fits, as HEBO
         a.observe(X, y)
         out.append(a.suggest(6))
     np.testing.assert_allclose(out[0], out[1], atol=1e-6)

@@ -130,10 +130,10 @@ def test_seeds_are_observed_first_and_everything_is_logged(tmp_path: Path, capsy
     assert all(set(r["params"]) == set(GENE_NAMES) and r["seconds"] >= 0 for r in log)
     run_json = json.loads((tmp_path / "run.json").read_text())
     assert run_json["seed"] == 3 and run_json["bounds"]["tau"] == [0.65, 1.0] and run_json["side"] == "right"
-    # final pick: best mean over fresh tosses among distinct top candidates
+    # final pick: best mean over fresh tosses among distinct top candidates (legal ones first)
     assert res.summary is not None and len(res.summary.rewards) == 4
     assert res.summary.mean_reward == pytest.approx(np.mean(res.summary.rewards))
-    assert res.summary.mean_reward == max(c.mean_reward for c in res.candidates)
+    assert res.summary.mean_reward == max(c.mean_reward for c in res.candidates if c.legal == res.summary.legal)
     assert res.best is not None and res.best.params == res.summary.params
     assert len(fake.calls) == 14 + 3
     assert capsys.readouterr().out == ""
@@ -337,6 +337,49 @@ def test_resume_takes_the_runs_own_hebo_configuration(tmp_path: Path) -> None:
     assert json.loads((tmp_path / "r" / "run.json").read_text())["config"]["fast_gp"] is False  # kept gpytorch
 
 
+def test_resume_of_a_run_logged_before_warm_starts_keeps_its_cold_fits(tmp_path: Path) -> None:
+    run(tmp_path / "r", iterations=1)
+    assert json.loads((tmp_path / "r" / "run.json").read_text())["config"]["refit_every"] == FAST.refit_every
+    old = json.loads((tmp_path / "r" / "run.json").read_text())
+    for key in ("refit_every", "warm_epochs", "refit_tolerance", "lean_nsga"):
+        del old["config"][key]  # a run logged before these options
+    (tmp_path / "r" / "run.json").write_text(json.dumps(old))
+    res = run(tmp_path / "r", iterations=2, resume=True, config=None)
+    cfg = json.loads((tmp_path / "r" / "run.json").read_text())["config"]
+    assert cfg["refit_every"] is None and cfg["lean_nsga"] is False  # cold fits, pymoo's NSGA-II, as it ran
+    assert res.evaluations == 2 + 2 * 4 and res.timings["suggest_cpu"] > 0
+
+
+def test_the_final_pick_puts_serves_legal_on_the_fresh_tosses_first(tmp_path: Path) -> None:
+    """The best training candidate has the best mean over the fresh tosses but is legal on
+    too few of them: the chosen serve is the best legal one."""
+
+    class MostlyLegal(FakeEvaluation):
+        def __init__(self) -> None:
+            super().__init__()
+            self.train: list[tuple[np.ndarray, float]] = []
+
+        def __call__(self, serve: HandServe, tosses: int, rng: np.random.Generator) -> Outcome:
+            out = super().__call__(serve, tosses, rng)
+            z = serve.params.normalize(BOUNDS)
+            if tosses < 4:  # training
+                self.train.append((z, out.reward))
+                return out
+            if np.allclose(z, max(self.train, key=lambda zr: zr[1])[0], atol=1e-9):  # legal on 2 of 4, a high mean
+                return Outcome(out.reward + 5.0, False, "illegal", "net", 0.5, out.rewards)
+            return Outcome(out.reward, True, "legal", None, 1.0, out.rewards)
+
+    res = run(tmp_path, MostlyLegal(), tosses=1, final_tosses=4, min_legal_fraction=0.75)
+    assert [c.legal for c in res.candidates] == [True, True, False]
+    assert res.candidates[-1].mean_reward > res.candidates[0].mean_reward  # the best mean is not chosen
+    assert res.summary is res.candidates[0] and res.summary.legal_fraction == 1.0
+    assert res.candidates[0].mean_reward >= res.candidates[1].mean_reward
+    G = np.array([c.genome for c in res.candidates])  # at least final_spread (0.05) apart
+    assert min(np.linalg.norm(G[i] - G[j]) for i in range(3) for j in range(i)) > 0.05
+    with pytest.raises(InvalidInputError, match="final_spread"):
+        run(tmp_path / "x", final_spread=-0.1)
+
+
 def test_overlap_with_fantasies_needs_the_fast_gp_before_anything_runs(tmp_path: Path) -> None:
     import dataclasses
 
@@ -410,7 +453,7 @@ def test_list_runs_filters_summarizes_and_reports_unreadable_folders(tmp_path: P
     assert [r.run_dir.name for r in runs] == ["b-run", "a-run"]  # newest name first
     assert len(problems) == 1 and "c-broken" in problems[0] and "not readable JSON" in problems[0]
     a = runs[1]
-    assert (a.side, a.task, a.seed, a.population, a.iterations, a.tosses) == ("right", "topspin_velocity", 3, 4, 1, 1)
+    assert (a.side, a.task, a.seed, a.population, a.iterations, a.tosses) == ("right", "topspin_velocity", 3, 4, 1, 5)  # 5: the default
     assert a.evaluations == a.planned == 2 + 4 and a.seeds == 2
     assert a.best_reward == max(json.loads(line)["reward"] for line in (tmp_path / "a-run" / "evaluations.jsonl").read_text().splitlines())
     assert a.label().startswith("a-run: 6/6 evaluations, best ")

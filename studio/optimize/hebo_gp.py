@@ -25,11 +25,16 @@ for LOVE's approximation, ``fast_pred_var``), without the likelihood noise as th
 configures HEBO (``pred_likeli=False``). ``tests/test_hebo_gp.py`` checks the loss, its
 gradient and the predictions against gpytorch's model with the same parameters, and a
 seeded fit against HEBO's.
+
+Beyond HEBO: a fit can start from where an earlier one ended (``fit(..., start=state())``,
+:class:`FitState`), which :class:`studio.optimize.hebo_adapter.HeboAdapter` uses to fit
+each batch's GP in a few epochs from the previous batch's (``tests/test_hebo_warm.py``).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -78,6 +83,19 @@ def _matern32(Z1: Tensor, Z2: Tensor) -> Tensor:
     sq = (Z1 * Z1).sum(-1, keepdim=True) - 2.0 * Z1 @ Z2.T + (Z2 * Z2).sum(-1)
     r = _SQRT3 * sq.clamp_min(1e-30).sqrt()
     return (1.0 + r) * torch.exp(-r)
+
+
+@dataclass(frozen=True)
+class FitState:
+    """Where a :class:`FastGP` fit ended: what a warm-started fit on more data starts from."""
+
+    raw: tuple[Tensor, Tensor, Tensor, Tensor]
+    """Raw (unconstrained) noise, mean, output scale and length scales (1, d), in gpytorch's order."""
+    loss: float
+    """:meth:`FastGP.loss` at the end of the fit: negative log marginal likelihood plus
+    negative log priors, per training point [nats per point] (``inf``: not factorizable)."""
+    points: int
+    """Training points of the fit."""
 
 
 class FastGP:
@@ -133,8 +151,33 @@ class FastGP:
 
     # -- HEBO's model interface --------------------------------------------------------
 
-    def fit(self, Xc: Tensor, Xe: Tensor, y: Tensor) -> None:
-        from hebo.models.nn.sgld import pSGLD
+    def fit(
+        self, Xc: Tensor, Xe: Tensor, y: Tensor, *, start: FitState | None = None, epochs: int | None = None
+    ) -> None:
+        """Fit the hyper-parameters to (Xc (n, d), y (n, 1)) with HEBO's pSGLD.
+
+        ``start=None`` (HEBO's cold fit): parameters initialized as HEBO does, ``num_epochs``
+        epochs. ``start``: a warm start from the raw parameters where an earlier fit ended
+        (:meth:`state`), ``epochs`` (default ``num_epochs``) epochs of the same pSGLD (a
+        fresh RMSprop: on the serve task's GP fits its first, larger steps reached a lower
+        loss than continuing the earlier fit's step sizes). Scalers and data are those of
+        this call in both cases.
+        """
+        self._set_data(Xc, y)
+        if start is None:
+            params = self._initial_params()
+        else:
+            if start.raw[3].shape != (1, self.Xc.shape[1]):
+                raise ValueError(
+                    f"FastGP.fit: the warm start has {start.raw[3].shape[-1]} length scales, the inputs {self.Xc.shape[1]} columns"
+                )
+            params = [p.detach().clone().requires_grad_(True) for p in start.raw]
+        self.raw_noise, self.raw_constant, self.raw_outputscale, self.raw_lengthscale = params
+        self._train(params, self.num_epochs if epochs is None else int(epochs))
+        self._cache()
+
+    def _set_data(self, Xc: Tensor, y: Tensor) -> None:
+        """Scalers (HEBO's: inputs to [-1, 1], targets standardized) and the scaled data."""
         from hebo.models.scalers import TorchMinMaxScaler, TorchStandardScaler
 
         Xc, y = Xc.float(), y.float()
@@ -145,21 +188,30 @@ class FastGP:
         self.Xc = self.xscaler.transform(Xc)
         self._centre = self.Xc.mean(0)
         self.y = self.yscaler.transform(y).reshape(-1)
+
+    def _initial_params(self) -> list[Tensor]:
+        """HEBO's initial raw parameters (noise, mean, output scale, length scales (1, d))."""
         d = self.Xc.shape[1]
         for _ in range(d):  # HEBO's kernel set-up draws a permutation per column from numpy's global
             # generator (the median is order-free); draw the same so later draws match HEBO's
             np.random.choice(len(self.Xc), min(len(self.Xc), 1000), replace=False)
         ls0 = torch.stack([torch.pdist(self.Xc[:, i : i + 1]).median().clamp(min=0.02) for i in range(d)])
-        self.raw_noise = _softplus_inv(torch.tensor([max(1e-2, self.noise_lb) - self.noise_lb])).requires_grad_(True)
-        self.raw_constant = torch.zeros(()).requires_grad_(True)
+        raw_noise = _softplus_inv(torch.tensor([max(1e-2, self.noise_lb) - self.noise_lb]))
         # HEBO starts the output scale at the targets' variance; floored so that identical
         # targets (e.g. only failed plans so far) do not start it at 0 (softplus^-1(0) = -inf)
-        self.raw_outputscale = _softplus_inv(self.y.var().clamp_min(1e-4)).requires_grad_(True)
-        self.raw_lengthscale = _softplus_inv(ls0).reshape(1, d).requires_grad_(True)
-        params = [self.raw_noise, self.raw_constant, self.raw_outputscale, self.raw_lengthscale]
+        raw_outputscale = _softplus_inv(self.y.var().clamp_min(1e-4))
+        return [
+            p.requires_grad_(True)
+            for p in (raw_noise, torch.zeros(()), raw_outputscale, _softplus_inv(ls0).reshape(1, d))
+        ]
+
+    def _train(self, params: list[Tensor], epochs: int) -> None:
+        """``epochs`` pSGLD epochs on ``params``; a diverged fit falls back to its start."""
+        from hebo.models.nn.sgld import pSGLD
+
         start = [p.detach().clone() for p in params]
-        opt = pSGLD(params, lr=self.lr, factor=1.0 / len(self.y), pretrain_step=self.num_epochs // 10)
-        for _ in range(self.num_epochs):
+        opt = pSGLD(params, lr=self.lr, factor=1.0 / len(self.y), pretrain_step=epochs // 10)
+        for _ in range(epochs):
             opt.zero_grad()
             try:
                 self.loss().backward()
@@ -167,12 +219,35 @@ class FastGP:
                 self.failed_steps += 1  # HEBO: "jitter is too large, give up fitting GP" (for this epoch)
                 continue
             opt.step()
-        if not all(bool(torch.isfinite(p).all()) for p in params):  # a diverged fit: keep the start
+        if not self._usable():  # a diverged fit (e.g. on identical targets): keep the start
             self.failed_steps += 1
             with torch.no_grad():
                 for p, p0 in zip(params, start, strict=True):
                     p.copy_(p0)
-        self._cache()
+
+    def _usable(self) -> bool:
+        """The parameters are finite and give a factorizable kernel matrix with a finite loss."""
+        params = (self.raw_noise, self.raw_constant, self.raw_outputscale, self.raw_lengthscale)
+        if not all(bool(torch.isfinite(p).all()) for p in params):
+            return False
+        with torch.no_grad():
+            try:
+                return bool(torch.isfinite(self.loss()))
+            except torch.linalg.LinAlgError:
+                return False
+
+    def state(self) -> FitState:
+        """Where the last fit ended (to warm-start a later fit on more data); its loss is
+        evaluated here at the fitted parameters (one factorization)."""
+        with torch.no_grad():
+            try:
+                loss = float(self.loss())
+            except torch.linalg.LinAlgError:
+                loss = math.inf
+        raw = tuple(
+            p.detach().clone() for p in (self.raw_noise, self.raw_constant, self.raw_outputscale, self.raw_lengthscale)
+        )
+        return FitState(raw=raw, loss=loss, points=len(self.y))  # type: ignore[arg-type]
 
     def _cache(self) -> None:
         """Factor of the training covariance and the weights of the posterior mean."""
