@@ -83,5 +83,7 @@ def test_spin_at_net_rewards_the_net_crossing_spin() -> None:
         reward(**after, weights=task_weights("backspin_net"))
     with pytest.raises(InvalidInputError, match="finite 3-vectors"):
         reward(**after, weights=task_weights("backspin_net"), v_net=[4.0, 0.0, np.nan], w_net=[0.0, -250.0, 0.0])
+    spin = reward(**after, weights=task_weights("spin_net"), v_net=[4.0, 0.0, 0.0], w_net=[0.0, -250.0, 400.0])
+    assert spin.r_topback + spin.r_side == pytest.approx((250.0 + 400.0) / 1000.0)  # any direction, not clamped at 500
     with pytest.raises(InvalidInputError, match="spin_at"):
         RewardWeights(spin_at="apex")  # type: ignore[arg-type]

@@ -216,12 +216,15 @@ TASKS: dict[str, RewardWeights] = {
     "backspin": RewardWeights(g_back=1.0, g_height=_LOW),
     "sidespin": RewardWeights(g_side=1.0, g_height=_LOW),
     "backspin_net": RewardWeights(g_back=1.0, g_height=_LOW, spin_at="net"),
+    "spin_net": RewardWeights(g_top=1.0, g_back=1.0, g_side=1.0, spin_max=1000.0, g_height=_LOW, spin_at="net"),
 }
 """Task presets of the paper's experiment (Table II): aiming at a table corner (15 cm
 inside the receiver's left corner), topspin & horizontal velocity, backspin, sidespin in
 either direction; each with the "low" height weighting the paper adds to all runs. Beyond
 the paper: ``backspin_net`` rewards backspin as the ball crosses the net
-(:attr:`RewardWeights.spin_at`)."""
+(:attr:`RewardWeights.spin_at`); ``spin_net`` rewards the spin a receiver reads at the
+net in any direction, |w_tb| + |w_ss| up to 1000 rad/s each (the serve capability
+envelope, the paper's Fig. 3b: how much spin the robot can put on a legal serve)."""
 
 
 def task_weights(name: str, *, low: bool = True) -> RewardWeights:
