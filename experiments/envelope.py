@@ -7,8 +7,10 @@ envelope: the largest topspin, backspin and sidespin at the net crossing, the fa
 the spinniest serve, each with its speed, spin and run. ``--json FILE`` also writes the
 points (speed, topspin, sidespin, |w| at the net per legal serve) for plots, and
 ``--serves DIR`` the extreme serves as serve files (``serve-studio evaluate`` reproduces them).
+``--within-efforts`` keeps only serves whose exported motion stays within every joint's
+effort limit (``robots/serve_robot.toml``): what the robot can run without raising a limit.
 
-    .venv/bin/python experiments/envelope.py RUN_DIR [RUN_DIR ...] [--max 400] [--json FILE] [--serves DIR]
+    .venv/bin/python experiments/envelope.py RUN_DIR [RUN_DIR ...] [--max 400] [--json FILE] [--serves DIR] [--within-efforts]
 
 A run folder may also be a folder of run folders (``experiments/table2/backspin``).
 """
@@ -21,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from studio.serve.efforts import effort_report
 from studio.serve.evaluate import EvaluationContext, evaluate_serve
 
 from studio.serve.params import GENE_NAMES, HandServe, LimitScale, ServeParams, save_serve
@@ -49,12 +52,19 @@ def legal_candidates(run: Path) -> list[tuple[str, ServeParams, LimitScale]]:
     return out
 
 
-def net_point(ctx: EvaluationContext, side: str, params: ServeParams, scale: LimitScale) -> dict[str, float] | None:
-    """Net-crossing speed [m/s] and spin [rad/s] of a serve legal on the mean toss, else None."""
+def net_point(
+    ctx: EvaluationContext, side: str, params: ServeParams, scale: LimitScale, *, within_efforts: bool = False
+) -> dict[str, float] | None:
+    """Net-crossing speed [m/s] and spin [rad/s] of a serve legal on the mean toss, else None
+    (also None with ``within_efforts`` when a joint's peak effort is beyond its limit)."""
     ev = evaluate_serve(HandServe(name="c", side=side, params=params, limit_scale=scale), ctx)  # type: ignore[arg-type]
     net = ev.metrics.net if ev.legal and ev.metrics is not None else None
     if net is None:
         return None
+    if within_efforts:
+        report = effort_report(ev.motion, ctx.robot)
+        if report is None or not report.within:
+            return None
     w = np.asarray(net["w"], dtype=float)
     return {"speed": float(net["speed"]), "topspin": float(net["topspin"]), "sidespin": float(net["sidespin"]),
             "spin": float(np.linalg.norm(w))}  # fmt: skip
@@ -66,12 +76,13 @@ def main() -> None:
     ap.add_argument("--max", type=int, default=400, help="at most this many serves per run (the last logged)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--serves", type=Path, default=None, help="write the extreme serves as serve files here")
+    ap.add_argument("--within-efforts", action="store_true", help="only serves within every joint's effort limit")
     args = ap.parse_args()
     ctx = EvaluationContext.default()
     points: list[dict[str, object]] = []
     for run in run_folders(args.runs):
         for side, params, scale in legal_candidates(run)[-args.max :]:
-            pt = net_point(ctx, side, params, scale)
+            pt = net_point(ctx, side, params, scale, within_efforts=args.within_efforts)
             if pt is not None:
                 points.append({**pt, "run": str(run), "side": side, "serve": (params, scale)})
     if not points:
