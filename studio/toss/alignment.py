@@ -13,6 +13,12 @@ from studio.toss.recordings import TossRecording
 
 FloatArray = npt.NDArray[np.float64]
 
+MAX_CUP_OFFSET = 0.05
+"""Largest horizontal distance [m] between a recorded ball riding in the cup and the
+primitive's cup path (mean over the in-cup samples). The shipped synthetic tosses: 0.5 mm
+at most; the other side's recordings: 0.60 m (issue 18: a left-side file was accepted for
+the right toss, the per-recording offsets of the t_lift fit absorbing the 0.6 m)."""
+
 
 def align_recordings(
     primitive: TossPrimitive, recordings: tuple[TossRecording, ...]
@@ -26,7 +32,9 @@ def align_recordings(
     height (:attr:`~studio.toss.primitive.TossPrimitive.cup_p`).
 
     Raises:
-        InvalidInputError: a recording that does not show the ball rising in the cup.
+        InvalidInputError: a recording that does not show the ball rising in the cup, or
+            whose ball rides farther than :data:`MAX_CUP_OFFSET` from the cup's path
+            (a recording of another toss, e.g. the other side's).
     """
     from scipy.interpolate import CubicSpline
 
@@ -45,7 +53,24 @@ def align_recordings(
         offsets.append(off)
         biases.append(bias)
         aligned.append(TossRecording(toss_id=rec.toss_id, t=rec.t - off, p=rec.p))
+        _check_in_cup(primitive, aligned[-1])
     return tuple(aligned), np.array(offsets), np.array(biases)
+
+
+def _check_in_cup(primitive: TossPrimitive, rec: TossRecording) -> None:
+    """InvalidInputError when the aligned recording's ball, while it rides in the cup, is
+    on average farther than :data:`MAX_CUP_OFFSET` from the cup's path horizontally."""
+    sel = (rec.t >= primitive.t[0]) & (rec.t <= primitive.release.time - 0.01)
+    if not np.any(sel):
+        return
+    cup = np.stack([np.interp(rec.t[sel], primitive.t, primitive.cup_p[:, j]) for j in range(2)], axis=1)
+    dx, dy = np.mean(rec.p[sel, :2] - cup, axis=0)
+    if float(np.hypot(dx, dy)) > MAX_CUP_OFFSET:
+        raise InvalidInputError(
+            f"toss {rec.toss_id!r}: while in the cup the ball is {float(np.hypot(dx, dy)):.3f} m from the cup path of "
+            f"{primitive.name} (x {dx:+.3f} m, y {dy:+.3f} m; at most {MAX_CUP_OFFSET} m): a recording of another toss "
+            "(the other side's?)"
+        )
 
 
 def _align_recording(

@@ -16,7 +16,7 @@ from studio.paths import DATA_DIR
 from studio.toss.model import TossModel
 from studio.toss.noise import TossNoise
 from studio.toss.primitive import TOSS_SIDES, TossPrimitive, TossSide
-from studio.toss.recordings import load_recordings_csv, save_recordings_csv
+from studio.toss.recordings import MAX_TOSSES, load_recordings_csv, save_recordings_csv
 from studio.toss.synthesis import make_toss
 from studio.toss.synthetic import simulate_tosses
 
@@ -79,8 +79,12 @@ def generate_default_recordings(
     Each side: :func:`default_toss` on the shipped robot, :func:`~studio.toss.synthetic.simulate_tosses` with
     the default :class:`~studio.toss.noise.TossNoise` and ``np.random.default_rng([seed, side_index])``,
     toss ids ``<side>_<k>``, saved with 4 decimals (0.1 ms, 0.1 mm): ~165 KiB per side.
+    ``n`` is at most :data:`~studio.toss.recordings.MAX_TOSSES` (more could not be read back).
     """
     from studio.robot.model import load_robot
+
+    if isinstance(n, bool) or not isinstance(n, int) or not 2 <= n <= MAX_TOSSES:
+        raise InvalidInputError(f"toss --generate: n must be a whole number of tosses in [2, {MAX_TOSSES}], got {n!r}")
 
     robot = load_robot()
     out = Path(out_dir)

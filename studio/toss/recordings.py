@@ -2,6 +2,16 @@
 
 A recording holds the ball centre positions of one toss as a tracking system measured
 them, on the recording's own clock (any origin); world frame, SI units.
+
+Work limits of a recordings file (issue 18: an 11 MB file of ~1,300 tosses kept
+``serve-studio toss`` busy for more than 4 minutes): at most :data:`MAX_CSV_BYTES`,
+:data:`MAX_SAMPLES` rows, :data:`MAX_TOSSES` tosses of at most
+:data:`MAX_SAMPLES_PER_TOSS` samples; times within :data:`MAX_ABS_TIME`, samples of a toss
+at least :data:`MIN_SAMPLE_STEP` apart and within :data:`MAX_TOSS_DURATION`, positions
+within :data:`MAX_ABS_POSITION`. A file within them is read and modelled in seconds
+(measured on the busy 2-core sandbox, session 14: 480 tosses of 414 samples, 198,336 rows in
+9.0 MB, 2.4 s to read and 7.0 s for the toss model; 40 tosses of 4,650 samples, 8.1 MB, 1.3 s
+and 2.7 s). The file of the report is refused at its 501st toss in ~2.5 s.
 """
 
 from __future__ import annotations
@@ -24,6 +34,23 @@ MIN_SAMPLES_PER_TOSS: Final[int] = 20
 
 CSV_COLUMNS: Final[tuple[str, ...]] = ("toss_id", "t", "x", "y", "z")
 """Required columns of a toss recording CSV file."""
+
+MAX_CSV_BYTES: Final[int] = 16 * 2**20
+"""Largest recordings file read [bytes] (the shipped ones: ~170 KB for 20 tosses)."""
+MAX_SAMPLES: Final[int] = 200_000
+"""Most data rows (samples, all tosses) in one recordings file."""
+MAX_TOSSES: Final[int] = 500
+"""Most tosses in one recordings file."""
+MAX_SAMPLES_PER_TOSS: Final[int] = 5_000
+"""Most samples of one toss (5 s at 1 kHz; the shipped tosses: ~200 at 200 Hz)."""
+MAX_ABS_TIME: Final[float] = 1e10
+"""Largest time magnitude [s] (a Unix time stamp is ~1.8e9 s)."""
+MIN_SAMPLE_STEP: Final[float] = 1e-5
+"""Least time between two samples of a toss [s] (100 kHz; trackers run at 100-1000 Hz)."""
+MAX_TOSS_DURATION: Final[float] = 60.0
+"""Longest time span of one toss's samples [s] (a toss lasts ~1 s)."""
+MAX_ABS_POSITION: Final[float] = 100.0
+"""Largest position coordinate magnitude [m] (world frame: origin at the table centre)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,18 +178,23 @@ def load_recordings_csv(path: str | Path) -> TossRecordings:
     - rows of a toss need not be contiguous, but its times must strictly increase in
       file order; each toss needs at least :data:`MIN_SAMPLES_PER_TOSS` samples.
 
+    - work limits and physical bounds (module doc): at most :data:`MAX_CSV_BYTES`,
+      :data:`MAX_SAMPLES` rows, :data:`MAX_TOSSES` tosses of at most
+      :data:`MAX_SAMPLES_PER_TOSS` samples; |t| <= :data:`MAX_ABS_TIME`, samples of a toss
+      at least :data:`MIN_SAMPLE_STEP` apart and within :data:`MAX_TOSS_DURATION`,
+      |x|, |y|, |z| <= :data:`MAX_ABS_POSITION`.
+
     Raises:
-        DataFileError: unreadable file or any violation above; the message names the
-            file, the line number (1-based) and the column.
+        DataFileError: unreadable file (not a regular file, too large, not UTF-8) or any
+            violation above; the message names the file, the line number (1-based) and
+            the column, or the limit.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataFileError(path, f"cannot read: {exc}") from exc
+    text = _read_text(path)
     header: list[str] | None = None
     col: dict[str, int] = {}
     data: dict[str, tuple[list[float], list[list[float]], int]] = {}
+    rows = 0
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
@@ -173,6 +205,9 @@ def load_recordings_csv(path: str | Path) -> TossRecordings:
             continue
         if len(cells) != len(header):
             raise DataFileError(path, f"line {lineno}: {len(cells)} fields, the header has {len(header)}")
+        rows += 1
+        if rows > MAX_SAMPLES:
+            raise DataFileError(path, f"line {lineno}: more than {MAX_SAMPLES} samples (data rows) in one file")
         _add_row(path, lineno, cells, col, data)
     if header is None:
         raise DataFileError(path, f"no header line (expected {','.join(CSV_COLUMNS)})")
@@ -187,6 +222,22 @@ def load_recordings_csv(path: str | Path) -> TossRecordings:
             )
         recs.append(TossRecording(toss_id=tid, t=np.array(ts), p=np.array(ps)))
     return TossRecordings(recordings=tuple(recs))
+
+
+def _read_text(path: Path) -> str:
+    """The text of a recordings file: a regular file of at most :data:`MAX_CSV_BYTES`,
+    UTF-8 (a byte-order mark is skipped); DataFileError otherwise."""
+    from studio.storage.jsonfile import read_file_bytes
+
+    data = read_file_bytes(path, max_bytes=MAX_CSV_BYTES)
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise DataFileError(
+            path,
+            f"line {line}: not UTF-8 text (byte {exc.start}: {data[exc.start : exc.start + 4]!r}); save it as UTF-8",
+        ) from None
 
 
 def _header_columns(path: Path, lineno: int, line: str, header: list[str]) -> dict[str, int]:
@@ -211,27 +262,49 @@ def _add_row(
     data: dict[str, tuple[list[float], list[list[float]], int]],
 ) -> None:
     """Append the sample of one data row to ``data`` ({toss_id: (times, positions, last
-    line)}); DataFileError for a bad id, a bad number or a time not after the toss's last."""
+    line)}); DataFileError for a bad id, a bad or out-of-range number, a time not after the
+    toss's last by :data:`MIN_SAMPLE_STEP` or a toss or file over its limits."""
     tid = cells[col["toss_id"]]
     if not tid or '"' in tid:
         raise DataFileError(path, f"line {lineno}, column toss_id: empty or quoted id {tid!r}")
-    vals: list[float] = []
-    for name in ("t", "x", "y", "z"):
-        cell = cells[col[name]]
-        try:
-            v = float(cell)
-        except ValueError:
-            raise DataFileError(path, f"line {lineno}, column {name}: {cell!r} is not a number") from None
-        if not math.isfinite(v):
-            raise DataFileError(path, f"line {lineno}, column {name}: {cell!r} is not finite")
-        vals.append(v)
-    ts, ps, last_line = data.setdefault(tid, ([], [], lineno))
-    if ts and vals[0] <= ts[-1]:
+    vals = [_number(path, lineno, name, cells[col[name]]) for name in ("t", "x", "y", "z")]
+    if tid not in data and len(data) >= MAX_TOSSES:
         raise DataFileError(
             path,
-            f"line {lineno}, column t: time {vals[0]!r} of toss {tid!r} not after {ts[-1]!r} (line {last_line}); "
-            "times must strictly increase within a toss",
+            f"line {lineno}, column toss_id: toss {tid!r} is one more than the {MAX_TOSSES} tosses allowed in one file",
         )
+    ts, ps, last_line = data.setdefault(tid, ([], [], lineno))
+    if ts and not vals[0] >= ts[-1] + MIN_SAMPLE_STEP:
+        raise DataFileError(
+            path,
+            f"line {lineno}, column t: time {vals[0]!r} of toss {tid!r} not after {ts[-1]!r} (line {last_line}) "
+            f"by at least {MIN_SAMPLE_STEP} s; times must strictly increase within a toss",
+        )
+    if ts and vals[0] - ts[0] > MAX_TOSS_DURATION:
+        raise DataFileError(
+            path,
+            f"line {lineno}, column t: toss {tid!r} spans {vals[0] - ts[0]:.6g} s from its first sample; "
+            f"at most {MAX_TOSS_DURATION} s per toss (a toss lasts ~1 s)",
+        )
+    if len(ts) >= MAX_SAMPLES_PER_TOSS:
+        raise DataFileError(path, f"line {lineno}: toss {tid!r} has more than {MAX_SAMPLES_PER_TOSS} samples")
     ts.append(vals[0])
     ps.append(vals[1:])
     data[tid] = (ts, ps, lineno)
+
+
+def _number(path: Path, lineno: int, name: str, cell: str) -> float:
+    """The value of column ``name`` (t or x, y, z): a finite decimal number within its
+    physical bound (:data:`MAX_ABS_TIME`, :data:`MAX_ABS_POSITION`)."""
+    try:
+        v = float(cell)
+    except ValueError:
+        raise DataFileError(path, f"line {lineno}, column {name}: {cell!r} is not a number") from None
+    if not math.isfinite(v):
+        raise DataFileError(path, f"line {lineno}, column {name}: {cell!r} is not finite")
+    bound, unit = (MAX_ABS_TIME, "s") if name == "t" else (MAX_ABS_POSITION, "m")
+    if abs(v) > bound:
+        raise DataFileError(
+            path, f"line {lineno}, column {name}: {cell} {unit} is outside [-{bound:g}, {bound:g}] {unit}"
+        )
+    return v

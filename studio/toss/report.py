@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from studio import constants as C
-from studio.errors import InvalidInputError
+from studio.errors import DataFileError, InvalidInputError
 from studio.toss.defaults import (
     default_recordings_path,
     default_toss,
@@ -42,7 +42,13 @@ def toss_report(side: TossSide = "right", csv_path: str | Path | None = None, *,
 
         rb = load_robot() if robot is None else robot
         path = default_recordings_path(side) if csv_path is None else Path(csv_path)
-        model = TossModel.from_recordings(default_toss(rb, side), load_recordings_csv(path))
+        recordings = load_recordings_csv(path)
+        try:
+            model = TossModel.from_recordings(default_toss(rb, side), recordings)
+        except DataFileError:
+            raise
+        except InvalidInputError as exc:  # a toss that does not fit this side's primitive: name the file
+            raise DataFileError(path, str(exc)) from None
     rel = model.primitive.release
     apex = float(np.max(model.p[:, 2]))
     lines = [
