@@ -40,7 +40,7 @@ def main() -> None:
         app = StudioApp(server, context=EvaluationContext.default(), serves_dir=Path(tmp), library_dir=Path(tmp) / "lib")
         app.worker.wait_idle(300)
         rng = np.random.default_rng(0)
-        handles = {"v_x": app.vx, "v_z": app.vz, "tau": app.tau, "roll": app.roll}
+        handles = {"v_x": app.form.vx, "v_z": app.form.vz, "tau": app.form.tau, "roll": app.form.roll}
         base = {k: h.value for k, h in handles.items()}
         steps = {"v_x": 0.2, "v_z": 0.2, "tau": 0.01, "roll": 2.0}
         rows: dict[str, list[float]] = {k: [] for k in handles}

@@ -37,7 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from studio.optimize.optimizer import EvaluatorPool, HeboConfig, bounds_for_toss, optimize_serve  # noqa: E402
+from studio.optimize.optimizer import EvaluatorPool, HeboConfig, OptimizeOptions, bounds_for_toss, optimize_serve  # noqa: E402
 from studio.serve.params import LimitScale, load_serve  # noqa: E402
 from studio.toss.defaults import load_default_toss_model  # noqa: E402
 
@@ -55,11 +55,11 @@ def run_hebo(args: argparse.Namespace, config: HeboConfig, iterations: int, run_
             print(f"  {done:5d}/{total} evaluations  {time.perf_counter() - t0:7.1f} s  best {best:+.3f}", flush=True)
 
     seeds = [load_serve(Path(p)) for p in args.seed_serve]
-    res = optimize_serve(
-        side=args.side, task=args.task, run_dir=run_dir, seeds=seeds, iterations=iterations, population=args.population,
-        tosses=args.tosses, seed=args.seed, workers=args.workers, progress=progress, config=config, overlap=overlap,
-        limit_scale=args.scale,
+    options = OptimizeOptions(
+        side=args.side, task=args.task, iterations=iterations, population=args.population, tosses=args.tosses,
+        seed=args.seed, workers=args.workers, config=config, overlap=overlap, limit_scale=args.scale,
     )  # fmt: skip
+    res = optimize_serve(options, run_dir=run_dir, seeds=seeds, progress=progress)
     return trace, res
 
 

@@ -41,20 +41,18 @@ def main() -> None:
     shutil.rmtree(args.run_dir, ignore_errors=True)
 
     def run_batches(iterations: int, *, resume: bool) -> studio.OptimizationResult:
-        return studio.optimize_serve(
+        options = studio.OptimizeOptions(
             side=seed.side,
             task=args.task,
-            run_dir=args.run_dir,
-            context=context,
-            seeds=[seed],
             iterations=iterations,
             population=args.population,
             seed=0,
             workers=1,
-            progress=progress,
             top_k=3,
             final_tosses=5,
-            resume=resume,
+        )
+        return studio.optimize_serve(
+            options, run_dir=args.run_dir, context=context, seeds=[seed], progress=progress, resume=resume
         )
 
     print(f"HEBO, {args.iterations} x {args.population}, seeded with {seed.name!r}:")

@@ -74,6 +74,7 @@ _API: dict[str, str] = {
     "evaluate_robust": "studio.serve.evaluate",
     "effort_report": "studio.serve.efforts",
     # optimization
+    "OptimizeOptions": "studio.optimize.optimizer",
     "optimize_serve": "studio.optimize.optimizer",
     "robustify_serve": "studio.optimize.robust",
     "TrainConfig": "studio.optimize.training",
@@ -98,6 +99,7 @@ __all__ = [
     "InvalidInputError",
     "LimitScale",
     "OptimizationResult",
+    "OptimizeOptions",
     "Plan",
     "RacketModel",
     "Robot",
@@ -137,7 +139,7 @@ if TYPE_CHECKING:
     from studio.library.match import match_stats
     from studio.library.selection import select_next
     from studio.library.store import ServeLibrary
-    from studio.optimize.optimizer import OptimizationResult, optimize_serve
+    from studio.optimize.optimizer import OptimizationResult, OptimizeOptions, optimize_serve
     from studio.optimize.robust import RobustScore, robustify_serve
     from studio.optimize.training import TrainConfig, train_serves
     from studio.physics.ball import (

@@ -125,7 +125,7 @@ def _export_evaluation(
     args: argparse.Namespace, run: _EvaluateRun, context: EvaluationContext, effort_limits: dict[str, float]
 ) -> None:
     """Add the evaluated plan to the ``--export`` library; the outcome (or refusal) goes into ``run``."""
-    from studio.library.store import ServeLibrary
+    from studio.optimize.workflow import export_evaluation
     from studio.serve.efforts import EffortLimitError
     from studio.serve.evaluate import evaluate_motion
 
@@ -141,12 +141,8 @@ def _export_evaluation(
             "the robust result is in its provenance)"
         )
     try:
-        entry = ServeLibrary(args.export).add(
-            exported,
-            provenance=provenance,
-            task=run.task,
-            preparation=context.preparation(run.serve.side),
-            effort_limits=effort_limits,
+        entry = export_evaluation(
+            args.export, exported, context=context, task=run.task, provenance=provenance, effort_limits=effort_limits
         )
     except EffortLimitError as err:  # the report goes out first, then the refusal
         run.refused = str(err)
@@ -232,7 +228,7 @@ def _run_optimize(
     import threading
     import time
 
-    from studio.optimize.optimizer import optimize_serve
+    from studio.optimize.optimizer import OptimizeOptions, optimize_serve
 
     start = time.perf_counter()
 
@@ -243,43 +239,30 @@ def _run_optimize(
             flush=True,
         )
 
-    return optimize_serve(
+    options = OptimizeOptions(
         side=args.side,
         task=args.task,
-        run_dir=run_dir,
-        seeds=seeds,
         iterations=args.iterations,
         population=args.population,
         tosses=args.tosses,
         seed=args.seed,
         workers=args.workers,
-        progress=progress,
-        stop=threading.Event(),
-        resume=args.resume,
         overlap=False if args.sequential else None,
         limit_scale=limit_scale,
+    )
+    return optimize_serve(
+        options, run_dir=run_dir, seeds=seeds, resume=args.resume, progress=progress, stop=threading.Event()
     )
 
 
 def _final_serve(args: argparse.Namespace, chosen: HandServe, run_dir: Path) -> HandServe:
-    """The chosen serve named and annotated, made robust with ``--robustify``, written to the run folder."""
-    from dataclasses import replace
-
+    """The chosen serve made robust with ``--robustify``, written to the run folder."""
+    from studio.optimize.workflow import make_robust
     from studio.serve.params import save_serve
 
-    best = replace(
-        chosen,
-        name=args.name or f"{args.task} {args.side} seed {args.seed}",
-        task=args.task,
-        notes=f"HEBO run {run_dir}, seed {args.seed}",
+    best = make_robust(
+        chosen, run_dir, evaluations=args.robustify, task=args.task, say=lambda line: print(line, flush=True)
     )
-    if args.robustify:
-        from studio.optimize.robust import robustify_chosen
-
-        print(f"robustify: {args.robustify} candidates around the chosen serve ...", flush=True)
-        rob = robustify_chosen(best, run_dir, evaluations=args.robustify, task=args.task)
-        print(rob.summary())
-        best = rob.serve
     out = run_dir / "best_serve.json"
     save_serve(out, best)
     print(f"best serve written to {out}")
@@ -290,16 +273,17 @@ def _export_optimized(
     args: argparse.Namespace, best: HandServe, run_dir: Path, effort_limits: dict[str, float]
 ) -> None:
     """Evaluate the final serve on the mean toss and add it to the ``--export`` library."""
-    from studio.library.store import ServeLibrary
+    from studio.optimize.workflow import export_evaluation, hebo_provenance
     from studio.serve.evaluate import EvaluationContext, evaluate_serve
 
     context = EvaluationContext.default()
     evaluation = evaluate_serve(best, context, task=args.task)
-    entry = ServeLibrary(args.export).add(
+    entry = export_evaluation(
+        args.export,
         evaluation,
-        provenance={"kind": "hebo", "run": str(run_dir), "seed": args.seed},
+        context=context,
         task=args.task,
-        preparation=context.preparation(best.side),
+        provenance=hebo_provenance(run_dir, args.seed),
         effort_limits=effort_limits,
     )
     print(f"exported to {args.export} as {entry.id}")
@@ -307,15 +291,14 @@ def _export_optimized(
 
 def _cmd_optimize(args: argparse.Namespace) -> int:
     """Optimize one serve with HEBO; write the chosen serve and optionally export it to a library."""
-    import time
-
     from studio.errors import StudioError
+    from studio.optimize.workflow import chosen_serve, new_run_dir
     from studio.serve.params import load_serve
 
     effort_limits = _effort_limits(args)
     seeds = [load_serve(p) for p in args.seeds]
     limit_scale = _optimize_limit_scale(args, seeds)
-    run_dir = Path(args.run_dir or f"runs/{time.strftime('%Y%m%d-%H%M%S')}-{args.side}-{args.task}")
+    run_dir = Path(args.run_dir) if args.run_dir else new_run_dir("runs", args.side, args.task)
     try:
         result = _run_optimize(args, run_dir, seeds, limit_scale)
     except KeyboardInterrupt:
@@ -325,14 +308,16 @@ def _cmd_optimize(args: argparse.Namespace) -> int:
         print(flush=True)
         raise
     print()
-    if result.best is None or result.summary is None:
+    name = args.name or f"{args.task} {args.side} seed {args.seed}"
+    chosen = chosen_serve(result, name=name, notes=f"HEBO run {run_dir}, seed {args.seed}")
+    if chosen is None or result.summary is None:
         print("nothing evaluated")
         return 1
     s = result.summary
     print(
         f"chosen serve: mean reward {s.mean_reward:+.3f} on {len(s.rewards)} fresh tosses, legal on {100 * s.legal_fraction:.0f} % ({'legal' if s.legal else 'not legal'})"
     )
-    best = _final_serve(args, result.best, run_dir)
+    best = _final_serve(args, chosen, run_dir)
     if args.export:
         _export_optimized(args, best, run_dir, effort_limits)
     return 0 if s.legal else 1
@@ -830,7 +815,7 @@ def _add_train_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], 
         "--ray",
         default=None,
         metavar="ADDRESS",
-        help="run the runs as tasks on a Ray cluster (ray.init address, e.g. auto or ray://host:10001; 'local' starts a local instance)",
+        help="run the runs as tasks on a Ray cluster (ray.init address: auto or host:6379 on a node of the cluster, see docs/cluster.md; 'local' starts a local instance)",
     )
     handlers["train"] = _cmd_train
 
@@ -867,6 +852,8 @@ def _add_dashboard_parser(
 
 def _add_toss_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], handlers: dict[str, Handler]) -> None:
     """Add the ``toss`` command and its handler."""
+    from studio.toss.recordings import MAX_TOSSES
+
     p = sub.add_parser("toss", help="analyse toss recordings: lift time, rise, spread")
     p.add_argument("--side", choices=("right", "left"), default="right")
     p.add_argument("--csv", default=None, help="recordings CSV (toss_id,t,x,y,z); default: the shipped recordings")
@@ -876,7 +863,7 @@ def _add_toss_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], h
     p.add_argument("--out", default=None, help="folder for --generate (default: the shipped data)")
     p.add_argument(
         "--n",
-        type=_bounded(int, 2, 10_000),
+        type=_bounded(int, 2, MAX_TOSSES),
         default=None,
         help="tosses per side for --generate (default: the shipped 20)",
     )

@@ -60,22 +60,22 @@ def test_metrics_tab_shows_the_joint_efforts(app: StudioApp) -> None:
 
 def test_non_finite_control_is_rejected_not_evaluated(app: StudioApp) -> None:
     assert app.worker.wait_idle(120)
-    kept = app.vx.value
+    kept = app.form.vx.value
     before = app.worker.latest_ticket
-    app.vx.value = math.nan  # the control's change callback refuses it and puts the last valid value back
+    app.form.vx.value = math.nan  # the control's change callback refuses it and puts the last valid value back
     assert "Refused" in app.message_md.content and "v_x" in app.message_md.content and "[-10, 10] m/s" in app.message_md.content
-    assert app.vx.value == kept
+    assert app.form.vx.value == kept
     assert app.worker.latest_ticket == before  # nothing submitted
     app._suspend = True
-    app.vx._impl.value = math.nan  # around every callback: reading the controls still refuses it
+    app.form.vx._impl.value = math.nan  # around every callback: reading the controls still refuses it
     app._suspend = False
     try:
         app._changed()
         assert "Input rejected" in app.message_md.content and "v_x" in app.message_md.content
         assert app.worker.latest_ticket == before
     finally:
-        app.vx._impl.value = kept
-    app.vx.value = 3.0
+        app.form.vx._impl.value = kept
+    app.form.vx.value = 3.0
     assert app.worker.wait_idle(120)
 
 
@@ -86,12 +86,12 @@ def test_joint_limit_controls_set_the_serves_limit_scale(app: StudioApp) -> None
 
     assert app.worker.wait_idle(120)
     before = app.worker.latest_ticket
-    app.limit_accel.value = math.nan
+    app.form.limit_accel.value = math.nan
     assert "Refused" in app.message_md.content and "acceleration limit" in app.message_md.content and "[0.25, 4]" in app.message_md.content
-    assert app.worker.latest_ticket == before and math.isfinite(app.limit_accel.value)
+    assert app.worker.latest_ticket == before and math.isfinite(app.form.limit_accel.value)
     scale = LimitScale(velocity=1.2, acceleration=1.5, jerk=3.7)
     app.load(replace(app.last.serve, limit_scale=scale))  # type: ignore[union-attr]
-    assert (app.limit_speed.value, app.limit_accel.value, app.limit_jerk.value) == (1.2, 1.5, 3.7)
+    assert (app.form.limit_speed.value, app.form.limit_accel.value, app.form.limit_jerk.value) == (1.2, 1.5, 3.7)
     assert app.controls().serve.limit_scale == scale
     assert app.worker.wait_idle(120)
     assert app.last is not None and app.last.serve.limit_scale == scale
@@ -171,7 +171,7 @@ def test_export_then_load_library_serve(app: StudioApp) -> None:
     assert labels
     exported = app.last.serve.params  # type: ignore[union-attr]
     app._suspend = True
-    app.vx.value = app.vx.value + 0.5
+    app.form.vx.value = app.form.vx.value + 0.5
     app._suspend = False
     app.files.library_pick.value = labels[-1]
     app.files.load_library_serve()
@@ -186,7 +186,7 @@ def test_open_request_from_the_dashboard_loads_the_serve_once(app: StudioApp) ->
     entries = ServeLibrary(app.library_dir).entries()
     target = entries[-1]
     app._suspend = True
-    app.vx.value = app.vx.value + 0.7  # move away from it
+    app.form.vx.value = app.form.vx.value + 0.7  # move away from it
     app._suspend = False
     app._changed()
     assert not app.files.poll_open_request()  # no new request: nothing happens
@@ -326,25 +326,25 @@ def test_mujoco_rollout_checkbox_shows_the_rollouts_verdict(app: StudioApp) -> N
         assert app.worker.wait_idle(1), what
 
     app.load(load_serve(EXAMPLES_DIR / "topspin_right.json"))
-    app.toss.value = "mean path"
+    app.form.toss.value = "mean path"
     settle("analytic evaluation")
-    app.mujoco.value = True
+    app.form.mujoco.value = True
     try:
         settle("MuJoCo evaluation")
         ev = app.last
         assert ev is not None and ev.rollout is not None, app.status_md.content
         assert "Evaluation failed" not in app.status_md.content
         assert ev.rollout.end_reason == "floor" and ev.rollout.t[-1] > ev.t[-1]  # type: ignore[index]
-        analytic = evaluate_serve(ev.serve, app.context, task=app.task.value)
+        analytic = evaluate_serve(ev.serve, app.context, task=app.form.task.value)
         assert ev.status == analytic.status == "legal" and "LEGAL" in app.status_md.content
         assert abs(ev.reward.total - analytic.reward.total) < 0.05
         assert "time: mujoco" in app.metrics_md.content
-        app.toss.value = "recorded 1"
+        app.form.toss.value = "recorded 1"
         settle("refused recorded toss")
         assert "Evaluation failed" in app.status_md.content and "cannot replay recorded toss 1" in app.status_md.content
     finally:
-        app.toss.value = "mean path"
-        app.mujoco.value = False
+        app.form.toss.value = "mean path"
+        app.form.mujoco.value = False
         settle("back to the analytic evaluation")
     assert app.last is not None and app.last.rollout is None
 
@@ -365,22 +365,22 @@ def test_overlay_undo_redo_and_the_pinned_serve(app: StudioApp) -> None:
     assert f"topspin {net['topspin']:.0f} rad/s" in table and app.last_efforts is not None and app.overlay.efforts.content == app.last_efforts.headline()
     assert app.pin_current() and app.pin is not None and app.pin.controls == good
     assert "/ghost/flight" in app.scene.ghost_nodes
-    app.vz.value = 4.5  # break it: two changes of two controls, two undo steps
+    app.form.vz.value = 4.5  # break it: two changes of two controls, two undo steps
     assert app.worker.wait_idle(120)
-    app.roll.value = 60.0
+    app.form.roll.value = 60.0
     assert app.worker.wait_idle(120) and app.last is not None and not app.last.legal
     table = app.overlay.table.content
     assert table.splitlines()[0] == "| | now | pinned A |" and "| verdict | **" in table and "| **LEGAL** |" in table
     assert f"{net['speed']:.2f} m/s" in table  # the pinned serve's numbers stay beside
     assert app.history.counts()[0] >= 2
     assert app.undo() and app.worker.wait_idle(120)
-    assert app.roll.value == pytest.approx(math.degrees(good.serve.params.roll), abs=0.5) and app.vz.value == 4.5
+    assert app.form.roll.value == pytest.approx(math.degrees(good.serve.params.roll), abs=0.5) and app.form.vz.value == 4.5
     assert app.undo() and app.worker.wait_idle(120)
     assert app.controls() == good and app.last is not None and app.last.legal
-    assert app.redo() and app.worker.wait_idle(120) and app.vz.value == 4.5
+    assert app.redo() and app.worker.wait_idle(120) and app.form.vz.value == 4.5
     assert app.restore_pin() and app.worker.wait_idle(120)
     assert app.controls() == good and app.last is not None and app.last.legal and app.last.serve.params == good.serve.params
-    assert app.undo() and app.worker.wait_idle(120) and app.vz.value == 4.5  # the restore is an undo step itself
+    assert app.undo() and app.worker.wait_idle(120) and app.form.vz.value == 4.5  # the restore is an undo step itself
     app.clear_pin()
     assert app.pin is None and app.scene.ghost_nodes == () and "pinned A" not in app.overlay.table.content
     app.set_view("receiver")  # no browser connected: nothing to move, no error

@@ -170,6 +170,7 @@ def test_export_puts_the_serve_in_the_library(studio, page) -> None:  # type: ig
     from studio.library.store import ServeLibrary
 
     app, _, serves = studio
+    _example(app)  # within the effort limits (the studio's first serve, backspin heavy right, is refused)
     page.get_by_role("tab", name="Serve", exact=True).click()
     page.get_by_role("button", name="Export to library").click()
     library = ServeLibrary(serves / "library")
@@ -236,7 +237,7 @@ def test_mujoco_rollout_checkbox_evaluates_with_the_rollout(studio, page) -> Non
     box = page.get_by_text("MuJoCo rollout", exact=True).first.locator("xpath=ancestor::div[contains(@class, 'mantine-Flex-root')][1]").locator("input[type=checkbox]")
     box.check(force=True)  # Mantine's input sits under its styled box
     try:
-        _wait(lambda: app.mujoco.value is True, 30, "the checkbox to reach the studio")
+        _wait(lambda: app.form.mujoco.value is True, 30, "the checkbox to reach the studio")
         _wait(lambda: app.worker.wait_idle(0.1) and app.last is not None and app.last.rollout is not None or "Evaluation failed" in app.status_md.content, 120, "MuJoCo evaluation")
         assert "Evaluation failed" not in app.status_md.content, app.status_md.content
         ev = app.last
@@ -251,7 +252,7 @@ def test_mujoco_rollout_checkbox_evaluates_with_the_rollout(studio, page) -> Non
     finally:
         page.get_by_role("tab", name="Serve", exact=True).click()
         box.uncheck(force=True)
-        _wait(lambda: app.mujoco.value is False and app.worker.wait_idle(0.1) and app.last is not None and app.last.rollout is None, 120, "back to the analytic evaluation")
+        _wait(lambda: app.form.mujoco.value is False and app.worker.wait_idle(0.1) and app.last is not None and app.last.rollout is None, 120, "back to the analytic evaluation")
 
 
 def test_a_slider_change_shows_the_new_verdict_and_net_spin_in_the_overlay(studio, page) -> None:  # type: ignore[no-untyped-def]

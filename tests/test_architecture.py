@@ -4,6 +4,7 @@ base (errors, paths, constants, storage) < physics < robot < toss < planning < s
 < library < optimize < ui < cli. The core (everything below ui) never imports the GUI
 libraries. Imports inside ``if TYPE_CHECKING:`` blocks are annotations only and not
 counted; ``studio/__init__.py`` (the public API, loaded lazily) is the one exception.
+No function or method in the package is longer than 80 lines.
 """
 
 from __future__ import annotations
@@ -103,3 +104,46 @@ def test_the_checker_sees_a_violation(tmp_path: Path) -> None:
     names = [n for n, _ in _imports(tree, "studio.physics.ball")]
     assert names == ["viser", "studio.ui.scene"]
     assert LAYERS.index(_layer("studio.ui.scene")) > LAYERS.index(_layer("studio.physics.ball"))
+
+
+MAX_FUNCTION_LINES = 80
+"""Longest function or method in ``studio/`` (``def`` line to last line, decorators not counted)."""
+LONG_FUNCTIONS_ALLOWED: frozenset[str] = frozenset()
+"""``module:qualified name`` of longer functions that are declarative tables (none today)."""
+
+
+def _functions(tree: ast.AST) -> list[tuple[str, int]]:
+    """(qualified name, lines) of every function and method in ``tree``, nested ones included."""
+    found: list[tuple[str, int]] = []
+
+    def visit(node: ast.AST, prefix: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                name = f"{prefix}{child.name}"
+                found.append((name, (child.end_lineno or child.lineno) - child.lineno + 1))
+                visit(child, f"{name}.")
+            elif isinstance(child, ast.ClassDef):
+                visit(child, f"{prefix}{child.name}.")
+            else:
+                visit(child, prefix)
+
+    visit(tree, "")
+    return found
+
+
+@pytest.mark.parametrize("path", SOURCES, ids=[_module_name(p) for p in SOURCES])
+def test_no_function_is_longer_than_80_lines(path: Path) -> None:
+    module = _module_name(path)
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    long = {
+        f"{module}:{name}": n
+        for name, n in _functions(tree)
+        if n > MAX_FUNCTION_LINES and f"{module}:{name}" not in LONG_FUNCTIONS_ALLOWED
+    }
+    assert not long, f"functions over {MAX_FUNCTION_LINES} lines (cut them into named pieces): {long}"
+
+
+def test_the_length_check_sees_a_long_method() -> None:
+    body = "\n".join(f"        x{i} = {i}" for i in range(80))
+    tree = ast.parse(f"class A:\n    def short(self):\n        pass\n\n    def long(self):\n{body}\n")
+    assert dict(_functions(tree)) == {"A.short": 2, "A.long": 81}

@@ -253,7 +253,7 @@ def test_convergence_of_linked_runs_inside_the_runs_folder_only(library: Path, t
     import shutil
 
     from studio.optimize.hebo_adapter import HeboConfig
-    from studio.optimize.optimizer import Outcome, optimize_serve
+    from studio.optimize.optimizer import OptimizeOptions, Outcome, optimize_serve
 
     def fake(serve, tosses, rng):  # type: ignore[no-untyped-def]
         r = -float(np.sum((serve.params.to_vector() - 0.5) ** 2)) / 100.0
@@ -262,7 +262,7 @@ def test_convergence_of_linked_runs_inside_the_runs_folder_only(library: Path, t
     cheap = HeboConfig(rand_sample=4, es_pop=8, es_iters=2, gp_epochs=5, max_train=12, keep_best=4)
     runs = tmp_path / "runs"
     for name in ("a", "b"):
-        optimize_serve(side="right", task="backspin", run_dir=runs / name, iterations=3, population=4, workers=1, config=cheap, evaluate=fake, top_k=1, final_tosses=2)
+        optimize_serve(OptimizeOptions(side="right", task="backspin", iterations=3, population=4, workers=1, config=cheap, top_k=1, final_tosses=2), run_dir=runs / name, evaluate=fake)
     outside = tmp_path / "elsewhere"
     shutil.copytree(runs / "a", outside)
     folder = tmp_path / "lib"

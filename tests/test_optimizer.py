@@ -16,7 +16,7 @@ import pytest
 
 from studio.errors import InvalidInputError
 from studio.optimize.hebo_adapter import HeboAdapter, HeboConfig
-from studio.optimize.optimizer import Outcome, bounds_for_toss, optimize_serve
+from studio.optimize.optimizer import OptimizeOptions, Outcome, bounds_for_toss, optimize_serve
 from studio.serve.params import GENE_NAMES, GenomeBounds, HandServe, ServeParams
 
 BOUNDS = GenomeBounds(tau=(0.65, 1.0))
@@ -49,7 +49,17 @@ def seed_serves() -> list[HandServe]:
 def run(tmp: Path, fake: FakeEvaluation | None = None, **kw: object):
     args = dict(side="right", task="topspin_velocity", run_dir=tmp, seeds=seed_serves(), iterations=3, population=4, workers=1, bounds=BOUNDS, config=FAST, seed=3, top_k=3, final_tosses=4, evaluate=fake or FakeEvaluation())
     args.update(kw)
-    return optimize_serve(**args)  # type: ignore[arg-type]
+    return call(**args)
+
+
+RUNTIME = ("run_dir", "context", "seeds", "resume", "progress", "stop", "on_record", "evaluate")
+"""optimize_serve's runtime arguments; the rest are OptimizeOptions fields."""
+
+
+def call(**kw: object):
+    """optimize_serve with the options and the runtime arguments in one set of keywords."""
+    runtime = {k: kw.pop(k) for k in RUNTIME if k in kw}
+    return optimize_serve(OptimizeOptions(**kw), **runtime)  # type: ignore[arg-type]
 
 
 def read_log(run_dir: Path) -> list[dict]:
@@ -226,14 +236,14 @@ def test_real_evaluation_of_a_seed_in_process(tmp_path: Path) -> None:
 
     ctx = EvaluationContext.default()
     seed = load_serve(Path(__file__).resolve().parents[1] / "examples" / "serves" / "topspin_right.json")
-    res = optimize_serve(side="right", task="topspin_velocity", run_dir=tmp_path, context=ctx, seeds=[seed], iterations=0, workers=1, top_k=1, final_tosses=3)
+    res = optimize_serve(OptimizeOptions(side="right", task="topspin_velocity", iterations=0, workers=1, top_k=1, final_tosses=3), run_dir=tmp_path, context=ctx, seeds=[seed])
     log = read_log(tmp_path)
     assert log[0]["status"] == "legal" and log[0]["reward"] > 0
     assert res.summary is not None and len(res.summary.rewards) == 3
     assert res.best is not None and res.best.side == "right"
     with pytest.raises(InvalidInputError, match="left toss"):
         left = HandServe(name="l", side="left", params=seed.params)
-        optimize_serve(side="right", task="topspin_velocity", run_dir=tmp_path / "x", context=ctx, seeds=[left], iterations=0, workers=1)
+        optimize_serve(OptimizeOptions(side="right", task="topspin_velocity", iterations=0, workers=1), run_dir=tmp_path / "x", context=ctx, seeds=[left])
 
 
 def test_hebo_prints_go_to_the_logger(capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:

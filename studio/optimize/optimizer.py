@@ -2,7 +2,8 @@
 
 The paper optimizes the normalized genome z in [0, 1]^10 (:class:`studio.serve.params.GenomeBounds`)
 with HEBO, 100 iterations of 20 suggestions, maximizing the reward F; HEBO minimizes
-y = -F. :func:`optimize_serve` runs that loop:
+y = -F. :func:`optimize_serve` runs that loop (the run's settings in :class:`OptimizeOptions`,
+the loop's state in :class:`OptimizationRun`):
 
 1. hand-designed seed serves are normalized, evaluated and observed before the first
    suggestion;
@@ -49,6 +50,7 @@ planned once, each toss is a flight), the final pick ~0.2 s.
 from __future__ import annotations
 
 import ctypes
+import functools
 import json
 import math
 import multiprocessing as mp
@@ -88,6 +90,8 @@ __all__ = [
     "RunSummary",
     "list_runs",
     "bounds_for_toss",
+    "OptimizeOptions",
+    "OptimizationRun",
     "optimize_serve",
     "RUN_SCHEMA",
     "read_run_meta",
@@ -763,211 +767,178 @@ def _final_candidates(
 
 
 ProgressFn = Callable[[int, int, float, "ServeParams | None"], None]
+"""``progress(evaluations done, total, best reward so far, best params so far)``."""
+RecordFn = Callable[[dict[str, Any]], None]
+"""``on_record(record)``: the JSON object of a new ``evaluations.jsonl`` line."""
 
 
-def optimize_serve(
-    *,
-    side: TossSide,
-    task: str,
-    run_dir: Path,
-    context: Any = None,
-    seeds: Sequence[HandServe] = (),
-    iterations: int = 100,
-    population: int = 20,
-    tosses: int = 5,
-    min_legal_fraction: float = 0.8,
-    seed: int = 0,
-    workers: int = 2,
-    progress: ProgressFn | None = None,
-    stop: threading.Event | None = None,
-    bounds: GenomeBounds | None = None,
-    config: HeboConfig | None = None,
-    resume: bool = False,
-    top_k: int = 10,
-    final_tosses: int = 10,
-    final_spread: float = 0.05,
-    evaluate: EvaluateFn | None = None,
-    ipopt_fallback: bool = False,
-    on_record: Callable[[dict[str, Any]], None] | None = None,
-    overlap: bool | None = None,
-    limit_scale: LimitScale | None = None,
-) -> OptimizationResult:
-    """Optimize a serve's genome for ``task`` on the ``side`` toss with HEBO (maximize F).
+@dataclass(frozen=True, kw_only=True)
+class OptimizeOptions:
+    """What :func:`optimize_serve` optimizes and how: the run's settings (its ``run.json``).
 
-    Args:
-        side: toss side; seeds of the other side are rejected.
-        task: reward task preset (:func:`studio.serve.reward.task_weights`).
-        run_dir: folder for ``run.json`` and ``evaluations.jsonl`` (created).
-        context: evaluation context for in-process evaluation (``workers == 1``) and for
-            the toss model of the default bounds; worker processes build their own.
-            Default: built on demand.
-        seeds: hand-designed serves evaluated and observed before the first suggestion (on
-            resume, none given: the run's own, from its run.json).
-        iterations, population: HEBO batches and points per batch (paper: 100 x 20).
-        tosses: tosses per training evaluation (1: mean toss; K > 1: K recorded tosses
-            drawn per evaluation, mean reward, legal if >= ``min_legal_fraction`` legal).
-            Default 5, as ``serve-studio optimize`` and ``train``: robust by default
-            (module docstring).
-        seed: seeds HEBO (numpy, torch, pymoo) and the toss draws.
-        workers: evaluation processes (spawned); 1 evaluates in this process.
-        progress: called after the seeds and after each batch with (evaluations done,
-            total, best reward so far, best params so far); an exception from it aborts
-            the run (the log keeps everything evaluated so far).
-        stop: when set, the run ends cleanly before the next batch (final pick still done).
-        bounds: genome bounds; default :func:`bounds_for_toss` of the side's toss model.
-        config: HEBO cost knobs (:class:`HeboConfig`); ``None``: the defaults, or on resume
-            the run's own configuration.
-        resume: continue the run in ``run_dir`` (its ``run.json`` must match).
-        top_k, final_tosses, final_spread: the final pick re-evaluates the ``top_k`` best
-            candidates at least ``final_spread`` apart (normalized genome; 0: distinct)
-            on ``final_tosses`` fresh recorded tosses; the best mean among those legal on
-            ``min_legal_fraction`` of them wins (:func:`_final_candidates`). Before issue
-            16 the pick was ``top_k=5, final_spread=0``, ranked by mean reward alone.
-        evaluate: replaces the evaluation (``evaluate(serve, tosses, rng) -> Outcome``),
-            run in this process (tests).
-        ipopt_fallback: let the strike planner fall back to IPOPT when its SQP misses
-            (off by default in training: :meth:`EvaluationContext.for_training`).
-        on_record: called with each new evaluation record (the JSON object of its
-            ``evaluations.jsonl`` line) right after it is logged (Ray streaming).
-        overlap: suggest batch i+1 while the worker processes evaluate batch i, from the
-            observations up to batch i-1, with batch i as pending points (kriging believer,
-            :attr:`HeboConfig.fantasize`): the suggestion runs beside the evaluation
-            (2000 evaluations: 74.0 s instead of 82-87 s sequential). At 800 evaluations
-            over 5 seeds it reached +0.90 on average (+0.70 to +1.46, legal serves on all
-            seeds) against +0.25 sequential (-3.0 to +1.29, one seed without a legal
-            serve): within the seed-to-seed spread. ``None`` (default): on when
-            ``workers > 1`` and the evaluation is the real one (with one process the
-            evaluation cannot run beside the suggestion); on resume the run's own loop.
-        limit_scale: the paper's dynamic limit expansion (:class:`~studio.serve.params.LimitScale`):
-            every candidate, the seeds included, is planned with the robot's derivative
-            limits times these factors, and the chosen serve carries them (a seed's own
-            scale is replaced by the run's). ``None``: the robot's own limits, or on resume
-            the run's own scale.
+    The runtime hooks (progress, stop, record streaming, an injected evaluation) are
+    arguments of :func:`optimize_serve`, not options. Checked on construction: a bad
+    value raises :class:`~studio.errors.InvalidInputError`.
     """
-    overlap_given, config_given = overlap is not None, config is not None
-    if overlap is None:
-        overlap = workers > 1 and evaluate is None
-    if config is None:
-        config = HeboConfig()
-    t_start = time.perf_counter()
-    if iterations < 0 or population < 1:
-        raise InvalidInputError(f"iterations must be >= 0 and population >= 1, got {iterations}, {population}")
-    if not final_spread >= 0.0:
-        raise InvalidInputError(f"final_spread must be >= 0, got {final_spread}")
-    if side not in ("right", "left"):
-        raise InvalidInputError(f"side must be 'right' or 'left', got {side!r}")
-    for s in seeds:
-        if s.side != side:
-            raise InvalidInputError(f"seed serve {s.name!r} is for the {s.side} toss, the run is for the {side} toss")
-    old = read_run_meta(run_dir) if resume and (Path(run_dir) / "run.json").exists() else None
-    if limit_scale is None:  # a resumed run keeps its own scale
-        limit_scale = LimitScale.from_json(old["limit_scale"]) if old is not None else LimitScale()
-    if old is not None and not seeds and old.get("seeds"):  # and its own seeds (run.json keeps them)
-        from studio.serve.params import serve_from_json
 
-        seeds = [
-            serve_from_json(d, source=f"{Path(run_dir) / 'run.json'}: seeds[{i}]") for i, d in enumerate(old["seeds"])
-        ]
-    # the workers start first and initialize while this process loads the toss model and HEBO
-    with EvaluatorPool(
-        side=side,
-        task=task,
-        workers=workers,
-        min_legal_fraction=min_legal_fraction,
-        evaluate=evaluate,
-        context=context,
-        ipopt_fallback=ipopt_fallback,
-        limit_scale=limit_scale,
-    ) as pool:
-        if bounds is None:
-            if context is not None:
-                toss = context.toss_model(side)
-            else:
-                from studio.toss.defaults import load_default_toss_model
+    side: TossSide
+    """Toss side; seeds of the other side are rejected."""
+    task: str
+    """Reward task preset (:func:`studio.serve.reward.task_weights`)."""
+    iterations: int = 100
+    """HEBO batches (paper: 100); a resumed run goes on to this many."""
+    population: int = 20
+    """Suggestions per batch (paper: 20)."""
+    tosses: int = 5
+    """Tosses per training evaluation (1: mean toss; K > 1: K recorded tosses drawn per
+    evaluation, mean reward, legal if >= ``min_legal_fraction`` legal). Default 5, as
+    ``serve-studio optimize`` and ``train``: robust by default (module docstring)."""
+    min_legal_fraction: float = 0.8
+    """Fraction of legal tosses that makes a multi-toss evaluation (and a final candidate) legal."""
+    seed: int = 0
+    """Seeds HEBO (numpy, torch, pymoo) and the toss draws."""
+    workers: int = 2
+    """Evaluation processes (spawned); 1 evaluates in this process."""
+    bounds: GenomeBounds | None = None
+    """Genome bounds; ``None``: :func:`bounds_for_toss` of the side's toss model."""
+    config: HeboConfig | None = None
+    """HEBO cost knobs (:class:`HeboConfig`); ``None``: the defaults, or on resume the run's
+    own configuration."""
+    top_k: int = 10
+    """Candidates of the final pick: the ``top_k`` best of the log at least ``final_spread``
+    apart are re-evaluated on ``final_tosses`` fresh recorded tosses; the best mean among
+    those legal on ``min_legal_fraction`` of them wins (:func:`_final_candidates`). Before
+    issue 16 the pick was ``top_k=5, final_spread=0``, ranked by mean reward alone."""
+    final_tosses: int = 10
+    """Fresh recorded tosses of each final candidate's re-evaluation."""
+    final_spread: float = 0.05
+    """Least distance between final candidates (normalized genome; 0: distinct)."""
+    ipopt_fallback: bool = False
+    """Let the strike planner fall back to IPOPT when its SQP misses (off by default in
+    training: :meth:`EvaluationContext.for_training`)."""
+    overlap: bool | None = None
+    """Suggest batch i+1 while the worker processes evaluate batch i, from the observations
+    up to batch i-1, with batch i as pending points (kriging believer,
+    :attr:`HeboConfig.fantasize`): the suggestion runs beside the evaluation (2000
+    evaluations: 74.0 s instead of 82-87 s sequential). At 800 evaluations over 5 seeds it
+    reached +0.90 on average (+0.70 to +1.46, legal serves on all seeds) against +0.25
+    sequential (-3.0 to +1.29, one seed without a legal serve): within the seed-to-seed
+    spread. ``None``: on when ``workers > 1`` and the evaluation is the real one (with one
+    process the evaluation cannot run beside the suggestion); on resume the run's own loop."""
+    limit_scale: LimitScale | None = None
+    """The paper's dynamic limit expansion (:class:`~studio.serve.params.LimitScale`): every
+    candidate, the seeds included, is planned with the robot's derivative limits times these
+    factors, and the chosen serve carries them (a seed's own scale is replaced by the run's).
+    ``None``: the robot's own limits, or on resume the run's own scale."""
 
-                toss = load_default_toss_model(side)
-            bounds = bounds_for_toss(toss)
-        if evaluate is None:
-            from studio.serve.reward import task_weights
-
-            task_weights(task)  # validate the name early
-        low, high = bounds.lows_highs()
-        penalty = -PLANNER_FAILURE_PENALTY if PLANNER_FAILURE_PENALTY < 0 else PLANNER_FAILURE_PENALTY
-
-        run_dir = Path(run_dir)
-        run_dir.mkdir(parents=True, exist_ok=True)
-        run_json = {
-            "schema": RUN_SCHEMA,
-            "side": side,
-            "task": task,
-            "seed": seed,
-            "iterations": iterations,
-            "population": population,
-            "tosses": tosses,
-            "min_legal_fraction": min_legal_fraction,
-            "bounds": _bounds_json(bounds),
-            "genes": list(GENE_NAMES),
-            "config": config.to_json(),
-            "ipopt_fallback": bool(ipopt_fallback),
-            "overlap": bool(overlap),
-            "limit_scale": limit_scale.to_json(),
-            "seeds": [replace(s, limit_scale=limit_scale).to_json() for s in seeds],  # planned at the run's scale
-        }
-        log_path = run_dir / "evaluations.jsonl"
-        records: list[EvaluationRecord] = []
-        if old is not None:
-            old.setdefault("ipopt_fallback", False)  # runs logged before these options existed
-            old.setdefault("overlap", False)
-            if not overlap_given:  # a resumed run keeps its own loop unless the caller chose one
-                overlap = bool(old["overlap"])
-                run_json["overlap"] = overlap
-            cfg_old = old.setdefault("config", {})
-            cfg_old.setdefault("fast_gp", False)  # runs logged before the option: HEBO's gpytorch GP
-            # pending points exist only with overlap; earlier overlapped runs did not fantasize
-            cfg_old.setdefault("fantasize", False if old["overlap"] else config.fantasize)
-            for key, value in _CONFIG_BEFORE_WARM_STARTS.items():  # runs logged before warm starts
-                cfg_old.setdefault(key, value)
-            if not config_given:  # likewise its HEBO configuration
-                try:
-                    config = HeboConfig(**cfg_old)
-                except (TypeError, InvalidInputError) as exc:
-                    raise InvalidInputError(
-                        f"resume: {run_dir / 'run.json'}: unusable HEBO configuration {cfg_old!r} ({exc})"
-                    ) from exc
-                run_json["config"] = config.to_json()
-            for key in (
-                "side",
-                "task",
-                "seed",
-                "population",
-                "tosses",
-                "bounds",
-                "config",
-                "min_legal_fraction",
-                "ipopt_fallback",
-                "overlap",
-                "limit_scale",
-            ):
-                if old.get(key) != json.loads(json.dumps(run_json[key])):
-                    raise InvalidInputError(
-                        f"resume: {run_dir / 'run.json'} has {key}={old.get(key)!r}, this call has {run_json[key]!r}"
-                    )
-            records = _read_jsonl(log_path)
-        elif log_path.exists() and log_path.stat().st_size > 0:
-            if resume:
-                raise InvalidInputError(f"cannot resume {log_path}: {run_dir / 'run.json'} is missing")
-            raise InvalidInputError(f"{log_path} already holds a run: pass resume=True or use another run_dir")
-        if overlap and config.fantasize and not config.fast_gp:
+    def __post_init__(self) -> None:
+        if self.iterations < 0 or self.population < 1:
             raise InvalidInputError(
-                "overlapped suggestions with HeboConfig.fantasize need HeboConfig.fast_gp (HEBO's gpytorch GP cannot take pending points): set fantasize=False or overlap=False"
+                f"iterations must be >= 0 and population >= 1, got {self.iterations}, {self.population}"
             )
-        (run_dir / "run.json").write_text(json.dumps(run_json, indent=2))
+        if not self.final_spread >= 0.0:
+            raise InvalidInputError(f"final_spread must be >= 0, got {self.final_spread}")
+        if self.side not in ("right", "left"):
+            raise InvalidInputError(f"side must be 'right' or 'left', got {self.side!r}")
+        if self.workers < 1:
+            raise InvalidInputError(f"workers must be >= 1, got {self.workers}")
 
-        opt = HeboAdapter(len(GENE_NAMES), seed=seed, config=config, penalty=penalty)
-        if records:
-            opt.observe(np.array([r.genome for r in records]), -np.array([r.reward for r in records]))
 
-        timings = {
+_RESUME_KEYS = (
+    "side",
+    "task",
+    "seed",
+    "population",
+    "tosses",
+    "bounds",
+    "config",
+    "min_legal_fraction",
+    "ipopt_fallback",
+    "overlap",
+    "limit_scale",
+)
+"""``run.json`` fields a resumed run must share with the call that resumes it."""
+
+
+def _fill_legacy_meta(old: dict[str, Any], config: HeboConfig) -> None:
+    """Fill in, in place, what a ``run.json`` logged before later options lacks: the values
+    those runs ran with (``config``: the caller's configuration, for ``fantasize``)."""
+    old.setdefault("ipopt_fallback", False)  # runs logged before these options existed
+    old.setdefault("overlap", False)
+    cfg_old = old.setdefault("config", {})
+    cfg_old.setdefault("fast_gp", False)  # runs logged before the option: HEBO's gpytorch GP
+    # pending points exist only with overlap; earlier overlapped runs did not fantasize
+    cfg_old.setdefault("fantasize", False if old["overlap"] else config.fantasize)
+    for key, value in _CONFIG_BEFORE_WARM_STARTS.items():  # runs logged before warm starts
+        cfg_old.setdefault(key, value)
+
+
+class OptimizationRun:
+    """One :func:`optimize_serve` call, with its state explicit.
+
+    On construction the options are resolved against the run folder (on resume the run's
+    own seeds, scale, loop and HEBO configuration); :meth:`execute` then starts the worker
+    pool, writes or checks ``run.json``, re-observes the logged records, runs the seed
+    batch and the HEBO batches (with ``overlap`` suggesting the next batch while the
+    current one is evaluated), makes the final pick and returns the result.
+
+    State: :attr:`records` (the log, in order), :attr:`timings`, :attr:`stopped`,
+    :attr:`ahead` (suggestions made ahead, by batch), the resolved :attr:`overlap`,
+    :attr:`config`, :attr:`limit_scale`, :attr:`bounds` and :attr:`seeds`, and while it
+    executes the HEBO adapter :attr:`opt` and the open log :attr:`log`. Arguments as
+    :func:`optimize_serve`'s.
+    """
+
+    bounds: GenomeBounds
+    """The genome bounds (resolved by :meth:`execute`)."""
+    low: npt.NDArray[np.float64]
+    """Lower physical bounds of the genes (10,)."""
+    high: npt.NDArray[np.float64]
+    """Upper physical bounds of the genes (10,)."""
+    opt: HeboAdapter
+    """The HEBO adapter (made by :meth:`execute`)."""
+    log: _Log
+    """The open ``evaluations.jsonl`` (while :meth:`execute` runs)."""
+
+    def __init__(
+        self,
+        options: OptimizeOptions,
+        *,
+        run_dir: str | Path,
+        context: Any = None,
+        seeds: Sequence[HandServe] = (),
+        resume: bool = False,
+        progress: ProgressFn | None = None,
+        stop: threading.Event | None = None,
+        on_record: RecordFn | None = None,
+        evaluate: EvaluateFn | None = None,
+    ) -> None:
+        self.t_start = time.perf_counter()
+        self.options = options
+        self.run_dir = Path(run_dir)
+        self.log_path = self.run_dir / "evaluations.jsonl"
+        self.context = context
+        self.progress = progress
+        self.stop = stop
+        self.on_record = on_record
+        self.evaluate = evaluate
+        self.overlap = options.overlap if options.overlap is not None else options.workers > 1 and evaluate is None
+        self.config = options.config if options.config is not None else HeboConfig()
+        for s in seeds:
+            if s.side != options.side:
+                raise InvalidInputError(
+                    f"seed serve {s.name!r} is for the {s.side} toss, the run is for the {options.side} toss"
+                )
+        self.resume = resume
+        self.old = read_run_meta(self.run_dir) if resume and (self.run_dir / "run.json").exists() else None
+        if options.limit_scale is not None:
+            self.limit_scale = options.limit_scale
+        else:  # a resumed run keeps its own scale
+            self.limit_scale = LimitScale.from_json(self.old["limit_scale"]) if self.old is not None else LimitScale()
+        self.seeds = self._own_seeds(seeds)
+        self.penalty = -PLANNER_FAILURE_PENALTY if PLANNER_FAILURE_PENALTY < 0 else PLANNER_FAILURE_PENALTY
+        self.records: list[EvaluationRecord] = []
+        self.timings = {
             "suggest": 0.0,
             "suggest_cpu": 0.0,
             "suggest_overlapped": 0.0,
@@ -975,129 +946,353 @@ def optimize_serve(
             "evaluate_cpu": 0.0,
             "final": 0.0,
         }
-        total = len(seeds) + iterations * population
-        stopped = False
-        log = _Log(log_path)
+        self.stopped = False
+        self.ahead: dict[int, npt.NDArray[np.float64]] = {}
 
-        def best() -> tuple[float, ServeParams | None]:
-            if not records:
-                return -math.inf, None
-            r = max(records, key=lambda r: r.reward)
-            return r.reward, ServeParams.from_vector([r.params[g] for g in GENE_NAMES])
+    def _own_seeds(self, seeds: Sequence[HandServe]) -> Sequence[HandServe]:
+        """``seeds``, or for a resumed run given none its own (``run.json`` keeps them)."""
+        if self.old is None or seeds or not self.old.get("seeds"):
+            return seeds
+        from studio.serve.params import serve_from_json
 
-        def run_batch(
-            Z: npt.NDArray[np.float64],
-            batch: int,
-            sources: list[str],
-            pool: EvaluatorPool,
-            meanwhile: Callable[[], None] | None = None,
-        ) -> None:
-            """Evaluate, log and observe the batch Z; ``meanwhile`` runs after the batch was
-            handed to the worker processes, before its results are collected."""
-            X = low + Z * (high - low)
-            start = len(records)
-            rng_seeds = [int(np.random.SeedSequence([seed, 1, start + i]).generate_state(1)[0]) for i in range(len(Z))]
-            t0 = time.perf_counter()
-            results = pool.map(X, tosses=tosses, rng_seeds=rng_seeds)
-            if meanwhile is not None:
-                meanwhile()
-            for i, (out, sec) in enumerate(results):
-                reward = out.reward if math.isfinite(out.reward) else -penalty
-                rec = EvaluationRecord(
-                    index=start + i, batch=batch, source=sources[i], genome=[float(v) for v in Z[i]],
-                    params={g: float(v) for g, v in zip(GENE_NAMES, X[i])}, reward=float(reward), legal=bool(out.legal),
-                    status=out.status, failed_check=out.failed_check, legal_fraction=float(out.legal_fraction), seconds=float(sec),
-                )  # fmt: skip
-                log.write(rec)
-                if on_record is not None:
-                    on_record(asdict(rec))
-                records.append(rec)
-                opt.observe(Z[i : i + 1], np.array([-reward]))
-                timings["evaluate_cpu"] += sec
-            timings["evaluate"] += time.perf_counter() - t0
+        source = self.run_dir / "run.json"
+        return [serve_from_json(d, source=f"{source}: seeds[{i}]") for i, d in enumerate(self.old["seeds"])]
 
-        ahead: dict[int, npt.NDArray[np.float64]] = {}
+    @property
+    def total(self) -> int:
+        """Evaluations of the whole run: seeds + iterations x population."""
+        return len(self.seeds) + self.options.iterations * self.options.population
 
-        def usable(it: int) -> int:
-            """Observations batch ``it``'s suggestion is made from (a prefix of the log): all
-            of them, or with ``overlap`` those of the seeds and the batches up to it - 2 (batch
-            0 follows the seeds, nothing is in flight then)."""
-            if not overlap:
-                return len(records)
-            return sum(1 for r in records if r.batch <= max(it - 2, -1))
+    # -- setting up ------------------------------------------------------------------
 
-        def pending(it: int, in_flight: npt.NDArray[np.float64] | None = None) -> npt.NDArray[np.float64] | None:
-            """With ``overlap``: the genomes batch ``it``'s suggestion must know of but does not
-            observe: batch it - 1 (logged ones plus ``in_flight``, the part being evaluated)
-            and, after a resume, the part of batch ``it`` itself that was logged already."""
-            if not overlap or it < 1:
-                return None
-            rows = [r.genome for r in records if r.batch in (it - 1, it)]
-            if in_flight is not None:
-                rows += [list(z) for z in in_flight]
-            return np.array(rows, dtype=float).reshape(-1, len(GENE_NAMES)) if rows else None
+    def _pool(self) -> EvaluatorPool:
+        o = self.options
+        return EvaluatorPool(
+            side=o.side,
+            task=o.task,
+            workers=o.workers,
+            min_legal_fraction=o.min_legal_fraction,
+            evaluate=self.evaluate,
+            context=self.context,
+            ipopt_fallback=o.ipopt_fallback,
+            limit_scale=self.limit_scale,
+        )
 
-        def report() -> None:
-            if progress is not None:
-                b, p = best()
-                progress(len(records), total, b, p)
+    def _resolve_bounds(self) -> GenomeBounds:
+        """The options' bounds, else those of the side's toss model (the context's, if given)."""
+        if self.options.bounds is not None:
+            return self.options.bounds
+        if self.context is not None:
+            toss = self.context.toss_model(self.options.side)
+        else:
+            from studio.toss.defaults import load_default_toss_model
 
-        try:
-            n_seed_done = sum(1 for r in records if r.batch == -1)
-            if n_seed_done < len(seeds):
-                todo = list(seeds)[n_seed_done:]
-                Z = np.array([s.params.normalize(bounds) for s in todo])
-                run_batch(Z, -1, [f"seed:{s.name}" for s in todo], pool)
-                report()
-            for it in range(iterations):
-                done = sum(1 for r in records if r.batch == it)
-                missing = population - done
-                if missing <= 0:
-                    continue
-                if stop is not None and stop.is_set():
-                    stopped = True
-                    break
-                t0, c0 = time.perf_counter(), time.process_time()
-                queued = ahead.pop(it) if it in ahead else None
-                if queued is not None and len(queued) == missing:
-                    Z = queued
-                else:
-                    Z = opt.suggest(missing, upto=usable(it), skip=len(records), pending=pending(it))
-                timings["suggest"] += time.perf_counter() - t0
-                timings["suggest_cpu"] += time.process_time() - c0
+            toss = load_default_toss_model(self.options.side)
+        return bounds_for_toss(toss)
 
-                def suggest_next(nxt: int = it + 1, batch: np.ndarray = Z) -> None:
-                    if nxt < iterations and not (stop is not None and stop.is_set()):
-                        t1, c1 = time.perf_counter(), time.process_time()
-                        ahead[nxt] = opt.suggest(
-                            population, upto=usable(nxt), skip=len(records) + len(batch), pending=pending(nxt, batch)
-                        )
-                        timings["suggest"] += time.perf_counter() - t1
-                        timings["suggest_cpu"] += time.process_time() - c1
-                        timings["suggest_overlapped"] += time.perf_counter() - t1
+    def _run_json(self, bounds: GenomeBounds) -> dict[str, Any]:
+        o = self.options
+        return {
+            "schema": RUN_SCHEMA,
+            "side": o.side,
+            "task": o.task,
+            "seed": o.seed,
+            "iterations": o.iterations,
+            "population": o.population,
+            "tosses": o.tosses,
+            "min_legal_fraction": o.min_legal_fraction,
+            "bounds": _bounds_json(bounds),
+            "genes": list(GENE_NAMES),
+            "config": self.config.to_json(),
+            "ipopt_fallback": bool(o.ipopt_fallback),
+            "overlap": bool(self.overlap),
+            "limit_scale": self.limit_scale.to_json(),
+            "seeds": [replace(s, limit_scale=self.limit_scale).to_json() for s in self.seeds],  # at the run's scale
+        }
 
-                run_batch(Z, it, ["hebo"] * missing, pool, meanwhile=suggest_next if overlap else None)
-                report()
+    def _adopt_old(self, old: dict[str, Any], run_json: dict[str, Any]) -> None:
+        """Resume: take the run's own loop and HEBO configuration unless the options chose
+        them, then refuse a ``run.json`` that differs from this call (field named)."""
+        _fill_legacy_meta(old, self.config)
+        if self.options.overlap is None:  # a resumed run keeps its own loop unless the caller chose one
+            self.overlap = bool(old["overlap"])
+            run_json["overlap"] = self.overlap
+        if self.options.config is None:  # likewise its HEBO configuration
+            try:
+                self.config = HeboConfig(**old["config"])
+            except (TypeError, InvalidInputError) as exc:
+                raise InvalidInputError(
+                    f"resume: {self.run_dir / 'run.json'}: unusable HEBO configuration {old['config']!r} ({exc})"
+                ) from exc
+            run_json["config"] = self.config.to_json()
+        for key in _RESUME_KEYS:
+            if old.get(key) != json.loads(json.dumps(run_json[key])):
+                raise InvalidInputError(
+                    f"resume: {self.run_dir / 'run.json'} has {key}={old.get(key)!r}, this call has {run_json[key]!r}"
+                )
 
-            # final pick: top-k distinct candidates, re-evaluated on fresh tosses
-            t0 = time.perf_counter()
-            candidates = _final_candidates(
-                records, pool, top_k=top_k, final_tosses=final_tosses, seed=seed, spread=final_spread
+    def _open(self) -> None:
+        """Bounds, the run folder and its ``run.json`` (a resumed one's checked), the logged
+        records, and the HEBO adapter that has observed them."""
+        self.bounds = self._resolve_bounds()
+        if self.evaluate is None:
+            from studio.serve.reward import task_weights
+
+            task_weights(self.options.task)  # validate the name early
+        self.low, self.high = self.bounds.lows_highs()
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        run_json = self._run_json(self.bounds)
+        if self.old is not None:
+            self._adopt_old(self.old, run_json)
+            self.records = _read_jsonl(self.log_path)
+        elif self.log_path.exists() and self.log_path.stat().st_size > 0:
+            if self.resume:
+                raise InvalidInputError(f"cannot resume {self.log_path}: {self.run_dir / 'run.json'} is missing")
+            raise InvalidInputError(f"{self.log_path} already holds a run: pass resume=True or use another run_dir")
+        if self.overlap and self.config.fantasize and not self.config.fast_gp:
+            raise InvalidInputError(
+                "overlapped suggestions with HeboConfig.fantasize need HeboConfig.fast_gp (HEBO's gpytorch GP cannot take pending points): set fantasize=False or overlap=False"
             )
-            timings["final"] = time.perf_counter() - t0
-        except WorkerDiedError as exc:
-            raise WorkerDiedError(
-                f"{exc}; the {len(records)} evaluations finished before are logged in {log_path}: "
-                f"continue the run with --resume --run-dir {run_dir}"
-            ) from None
-        finally:
-            log.close()
+        (self.run_dir / "run.json").write_text(json.dumps(run_json, indent=2))
+        self.opt = HeboAdapter(len(GENE_NAMES), seed=self.options.seed, config=self.config, penalty=self.penalty)
+        if self.records:
+            self.opt.observe(np.array([r.genome for r in self.records]), -np.array([r.reward for r in self.records]))
 
+    # -- the loop --------------------------------------------------------------------
+
+    def execute(self) -> OptimizationResult:
+        """Run the seeds and the batches, make the final pick; the result of the call."""
+        # the workers start first and initialize while this process loads the toss model and HEBO
+        with self._pool() as pool:
+            self._open()
+            self.log = _Log(self.log_path)
+            try:
+                self._run_seeds(pool)
+                self._run_iterations(pool)
+                candidates = self._final_pick(pool)
+            except WorkerDiedError as exc:
+                raise WorkerDiedError(
+                    f"{exc}; the {len(self.records)} evaluations finished before are logged in {self.log_path}: "
+                    f"continue the run with --resume --run-dir {self.run_dir}"
+                ) from None
+            finally:
+                self.log.close()
+            return self._result(candidates)
+
+    def _stopping(self) -> bool:
+        return self.stop is not None and self.stop.is_set()
+
+    def _best(self) -> tuple[float, ServeParams | None]:
+        """The best logged reward and its parameters (-inf, None before the first)."""
+        if not self.records:
+            return -math.inf, None
+        r = max(self.records, key=lambda r: r.reward)
+        return r.reward, ServeParams.from_vector([r.params[g] for g in GENE_NAMES])
+
+    def _report(self) -> None:
+        if self.progress is not None:
+            b, p = self._best()
+            self.progress(len(self.records), self.total, b, p)
+
+    def _run_seeds(self, pool: EvaluatorPool) -> None:
+        """Evaluate the seeds not logged yet (all of them in a new run)."""
+        n_seed_done = sum(1 for r in self.records if r.batch == -1)
+        if n_seed_done < len(self.seeds):
+            todo = list(self.seeds)[n_seed_done:]
+            Z = np.array([s.params.normalize(self.bounds) for s in todo])
+            self._run_batch(Z, -1, [f"seed:{s.name}" for s in todo], pool)
+            self._report()
+
+    def _run_iterations(self, pool: EvaluatorPool) -> None:
+        """The HEBO batches: each suggests what its batch misses (all of it unless resumed
+        mid-batch), evaluates, logs and observes it; the stop event ends the loop."""
+        for it in range(self.options.iterations):
+            missing = self.options.population - sum(1 for r in self.records if r.batch == it)
+            if missing <= 0:
+                continue
+            if self._stopping():
+                self.stopped = True
+                break
+            Z = self._suggest(it, missing)
+            meanwhile = functools.partial(self._suggest_ahead, it + 1, Z) if self.overlap else None
+            self._run_batch(Z, it, ["hebo"] * missing, pool, meanwhile=meanwhile)
+            self._report()
+
+    def _run_batch(
+        self,
+        Z: npt.NDArray[np.float64],
+        batch: int,
+        sources: list[str],
+        pool: EvaluatorPool,
+        meanwhile: Callable[[], None] | None = None,
+    ) -> None:
+        """Evaluate, log and observe the batch Z; ``meanwhile`` runs after the batch was
+        handed to the worker processes, before its results are collected."""
+        X = self.low + Z * (self.high - self.low)
+        start = len(self.records)
+        seed = self.options.seed
+        rng_seeds = [int(np.random.SeedSequence([seed, 1, start + i]).generate_state(1)[0]) for i in range(len(Z))]
+        t0 = time.perf_counter()
+        results = pool.map(X, tosses=self.options.tosses, rng_seeds=rng_seeds)
+        if meanwhile is not None:
+            meanwhile()
+        for i, (out, sec) in enumerate(results):
+            reward = out.reward if math.isfinite(out.reward) else -self.penalty
+            rec = EvaluationRecord(
+                index=start + i,
+                batch=batch,
+                source=sources[i],
+                genome=[float(v) for v in Z[i]],
+                params={g: float(v) for g, v in zip(GENE_NAMES, X[i])},
+                reward=float(reward),
+                legal=bool(out.legal),
+                status=out.status,
+                failed_check=out.failed_check,
+                legal_fraction=float(out.legal_fraction),
+                seconds=float(sec),
+            )
+            self.log.write(rec)
+            if self.on_record is not None:
+                self.on_record(asdict(rec))
+            self.records.append(rec)
+            self.opt.observe(Z[i : i + 1], np.array([-reward]))
+            self.timings["evaluate_cpu"] += sec
+        self.timings["evaluate"] += time.perf_counter() - t0
+
+    def _usable(self, it: int) -> int:
+        """Observations batch ``it``'s suggestion is made from (a prefix of the log): all
+        of them, or with ``overlap`` those of the seeds and the batches up to it - 2 (batch
+        0 follows the seeds, nothing is in flight then)."""
+        if not self.overlap:
+            return len(self.records)
+        return sum(1 for r in self.records if r.batch <= max(it - 2, -1))
+
+    def _pending(self, it: int, in_flight: npt.NDArray[np.float64] | None = None) -> npt.NDArray[np.float64] | None:
+        """With ``overlap``: the genomes batch ``it``'s suggestion must know of but does not
+        observe: batch it - 1 (logged ones plus ``in_flight``, the part being evaluated)
+        and, after a resume, the part of batch ``it`` itself that was logged already."""
+        if not self.overlap or it < 1:
+            return None
+        rows = [r.genome for r in self.records if r.batch in (it - 1, it)]
+        if in_flight is not None:
+            rows += [list(z) for z in in_flight]
+        return np.array(rows, dtype=float).reshape(-1, len(GENE_NAMES)) if rows else None
+
+    def _suggest(self, it: int, missing: int) -> npt.NDArray[np.float64]:
+        """Batch ``it``'s ``missing`` points: the ones suggested ahead if they fit, else new."""
+        t0, c0 = time.perf_counter(), time.process_time()
+        queued = self.ahead.pop(it) if it in self.ahead else None
+        if queued is not None and len(queued) == missing:
+            Z = queued
+        else:
+            Z = self.opt.suggest(missing, upto=self._usable(it), skip=len(self.records), pending=self._pending(it))
+        self.timings["suggest"] += time.perf_counter() - t0
+        self.timings["suggest_cpu"] += time.process_time() - c0
+        return Z
+
+    def _suggest_ahead(self, nxt: int, batch: npt.NDArray[np.float64]) -> None:
+        """Suggest batch ``nxt`` while ``batch`` (the one before it) is being evaluated."""
+        if nxt < self.options.iterations and not self._stopping():
+            t1, c1 = time.perf_counter(), time.process_time()
+            self.ahead[nxt] = self.opt.suggest(
+                self.options.population,
+                upto=self._usable(nxt),
+                skip=len(self.records) + len(batch),
+                pending=self._pending(nxt, batch),
+            )
+            self.timings["suggest"] += time.perf_counter() - t1
+            self.timings["suggest_cpu"] += time.process_time() - c1
+            self.timings["suggest_overlapped"] += time.perf_counter() - t1
+
+    # -- the end ---------------------------------------------------------------------
+
+    def _final_pick(self, pool: EvaluatorPool) -> list[FinalCandidate]:
+        """Top-k distinct candidates, re-evaluated on fresh tosses (:func:`_final_candidates`)."""
+        o = self.options
+        t0 = time.perf_counter()
+        candidates = _final_candidates(
+            self.records, pool, top_k=o.top_k, final_tosses=o.final_tosses, seed=o.seed, spread=o.final_spread
+        )
+        self.timings["final"] = time.perf_counter() - t0
+        return candidates
+
+    def _chosen(self, summary: FinalCandidate | None) -> HandServe | None:
+        """The chosen serve: the first candidate, named and annotated, at the run's limit scale."""
+        if summary is None:
+            return None
+        o = self.options
+        return HandServe(
+            name=f"{o.task}_{o.side}_hebo_s{o.seed}",
+            side=o.side,
+            params=summary.params,
+            task=o.task,
+            limit_scale=self.limit_scale,
+            notes=f"HEBO run {self.run_dir.name}: mean reward {summary.mean_reward:+.3f} over {len(summary.rewards)} tosses, legal fraction {summary.legal_fraction:.2f}",
+        )
+
+    def _result(self, candidates: list[FinalCandidate]) -> OptimizationResult:
         summary = candidates[0] if candidates else None
-        best_serve = HandServe(name=f"{task}_{side}_hebo_s{seed}", side=side, params=summary.params, task=task, limit_scale=limit_scale, notes=f"HEBO run {run_dir.name}: mean reward {summary.mean_reward:+.3f} over {len(summary.rewards)} tosses, legal fraction {summary.legal_fraction:.2f}") if summary else None  # fmt: skip
-        timings["total"] = time.perf_counter() - t_start
+        best_serve = self._chosen(summary)
+        self.timings["total"] = time.perf_counter() - self.t_start
         return OptimizationResult(
-            best=best_serve, summary=summary, candidates=tuple(candidates), history=np.array([r.reward for r in records], dtype=float),
-            evaluations=len(records), stopped=stopped, timings=timings, run_dir=run_dir, observed_X=opt.X, observed_y=opt.y,
-            gp_fits=dict(Counter(f.kind for f in opt.fits)),
-        )  # fmt: skip
+            best=best_serve,
+            summary=summary,
+            candidates=tuple(candidates),
+            history=np.array([r.reward for r in self.records], dtype=float),
+            evaluations=len(self.records),
+            stopped=self.stopped,
+            timings=self.timings,
+            run_dir=self.run_dir,
+            observed_X=self.opt.X,
+            observed_y=self.opt.y,
+            gp_fits=dict(Counter(f.kind for f in self.opt.fits)),
+        )
+
+
+def optimize_serve(
+    options: OptimizeOptions,
+    *,
+    run_dir: str | Path,
+    context: Any = None,
+    seeds: Sequence[HandServe] = (),
+    resume: bool = False,
+    progress: ProgressFn | None = None,
+    stop: threading.Event | None = None,
+    on_record: RecordFn | None = None,
+    evaluate: EvaluateFn | None = None,
+) -> OptimizationResult:
+    """Optimize a serve's genome for ``options.task`` on the ``options.side`` toss with HEBO
+    (maximize F); :class:`OptimizeOptions` holds the run's settings, :class:`OptimizationRun`
+    does the work.
+
+    Args:
+        options: the run's settings (sizes, tosses, seed, workers, bounds, HEBO
+            configuration, final pick, loop, limit scale).
+        run_dir: folder for ``run.json`` and ``evaluations.jsonl`` (created).
+        context: evaluation context for in-process evaluation (``workers == 1``) and for
+            the toss model of the default bounds; worker processes build their own.
+            Default: built on demand.
+        seeds: hand-designed serves evaluated and observed before the first suggestion (on
+            resume, none given: the run's own, from its run.json).
+        resume: continue the run in ``run_dir`` (its ``run.json`` must match).
+        progress: called after the seeds and after each batch with (evaluations done,
+            total, best reward so far, best params so far); an exception from it aborts
+            the run (the log keeps everything evaluated so far).
+        stop: when set, the run ends cleanly before the next batch (final pick still done).
+        on_record: called with each new evaluation record (the JSON object of its
+            ``evaluations.jsonl`` line) right after it is logged (Ray streaming).
+        evaluate: replaces the evaluation (``evaluate(serve, tosses, rng) -> Outcome``),
+            run in this process (tests).
+    """
+    run = OptimizationRun(
+        options,
+        run_dir=run_dir,
+        context=context,
+        seeds=seeds,
+        resume=resume,
+        progress=progress,
+        stop=stop,
+        on_record=on_record,
+        evaluate=evaluate,
+    )
+    return run.execute()

@@ -11,12 +11,13 @@ Where the runs execute:
 
 - locally (default): one run after the other, each with ``workers`` evaluation processes
   (the evaluations of a run are what is parallel);
-- on a Ray cluster (``ray_address``, e.g. ``"auto"`` or ``"ray://host:10001"``; ``"local"``
-  starts a private local Ray instance): every run is one Ray task (1 CPU, evaluation in
-  the task's process), as many at once as the cluster has CPUs. Each task streams its
-  evaluation records back to this process as they are made, which appends them to the
-  local run folder, so the run folders, the library and resuming work as in local mode
-  (the nodes need no shared file system).
+- on a Ray cluster (``ray_address``: a cluster's address such as ``"auto"`` or
+  ``"host:6379"``; ``"local"`` starts a private local Ray instance; set-up in
+  ``docs/cluster.md``): every run is one Ray task (1 CPU, evaluation in the task's
+  process), as many at once as the cluster has CPUs. Each task is a streaming generator
+  that yields its evaluation records as they are made; this process (the driver) appends
+  them to the local run folder, so the run folders, the library and resuming work as in
+  local mode (the nodes need no shared file system).
 
 ``exported.json`` in a finished run folder holds the verdict on the mean toss, the summary
 row and the chosen serve (hand-serve JSON, so ``serve-studio evaluate`` reproduces it).
@@ -25,24 +26,39 @@ Resume: a run whose folder holds ``exported.json`` is finished and skipped; a ru
 partial ``evaluations.jsonl`` continues without repeating an evaluation (in Ray mode the
 partial log is sent to the task). Records in flight when the driver is killed are lost
 (at most the batch being evaluated per run).
+
+Ray failures (issue 18): Ray never retries a task itself (``max_retries=0``: a retry would
+start from the log the task was first given and send records the driver holds). The
+driver keeps a record only when it is the next one of the run's log (a repeat of a held
+index with the same genome is dropped, with another genome the run stops with an error
+naming it). When a task's worker or node is lost (worker crash, node death, lost object,
+dead actor), the driver resubmits the run from its current log, at most
+:attr:`TrainConfig.ray_retries` times; a run that still does not finish, a cluster left
+without CPUs or a failing cluster end the training with one
+:class:`TrainingFailedError` naming the runs and their logs, which a rerun resumes.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
+import queue
 import tempfile
+import threading
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+import traceback
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import IO, Any, Literal
 
 import numpy as np
 
-from studio.errors import InvalidInputError
+from studio.errors import DataFileError, InvalidInputError, StudioError
 from studio.serve.params import HandServe, LimitScale, TossSide
+from studio.storage.jsonlog import read_jsonl, write_line
 
 # Ray >= 2.45 notices a driver started by ``uv run`` (as ``./dev`` does) and starts its
 # workers with ``uv run`` too, packaging the working directory; here that failed ("worker
@@ -51,6 +67,7 @@ from studio.serve.params import HandServe, LimitScale, TossSide
 os.environ.setdefault("RAY_ENABLE_UV_RUN_RUNTIME_ENV", "0")
 
 SideChoice = Literal["right", "left", "both"]
+_LOG = logging.getLogger("studio.optimize.training")
 
 PAPER_TABLE_II_SIM: dict[str, dict[str, tuple[float, float]]] = {
     "aiming": {
@@ -136,6 +153,9 @@ class TrainConfig:
     """Candidates of the local robustness search (:func:`studio.optimize.robust.robustify_serve`)
     run on each chosen serve before it is judged and exported (0: none). Logged in
     ``<run>/robustify/`` and resumed with the run."""
+    ray_retries: int = 3
+    """On Ray: how often a run whose worker or node was lost is resubmitted (from the
+    driver's log) before the training reports it as not finished."""
 
     def __post_init__(self) -> None:
         from studio.serve.reward import task_weights
@@ -149,6 +169,8 @@ class TrainConfig:
             raise InvalidInputError(
                 f"train: robustify must be a whole number of candidates >= 0, got {self.robustify!r}"
             )
+        if isinstance(self.ray_retries, bool) or not isinstance(self.ray_retries, int) or self.ray_retries < 0:
+            raise InvalidInputError(f"train: ray_retries must be a whole number >= 0, got {self.ray_retries!r}")
         if self.side not in ("right", "left", "both"):
             raise InvalidInputError(f"train: side must be right, left or both, got {self.side!r}")
 
@@ -212,49 +234,89 @@ def _run_job(
     on_record: Callable[[dict[str, Any]], None] | None = None,
 ) -> HandServe | None:
     """One HEBO run into ``run_dir`` (resumed if it holds a log); the chosen serve."""
-    from studio.optimize.optimizer import optimize_serve
+    from studio.optimize.optimizer import OptimizeOptions, optimize_serve
+    from studio.optimize.workflow import chosen_serve
 
-    res = optimize_serve(
+    options = OptimizeOptions(
         side=side,
         task=cfg.task,
-        run_dir=run_dir,
-        seeds=[s for s in cfg.seeds if s.side == side],
         iterations=cfg.iterations,
         population=cfg.population,
         tosses=cfg.tosses,
         seed=seed,
         workers=workers,
-        resume=(run_dir / "evaluations.jsonl").exists(),
-        on_record=on_record,
         overlap=cfg.overlap,
         limit_scale=cfg.limit_scale,
     )
-    if res.best is None:
-        return None
-    return replace(res.best, name=f"{cfg.task} {side} {seed}", task=cfg.task)
+    res = optimize_serve(
+        options,
+        run_dir=run_dir,
+        seeds=[s for s in cfg.seeds if s.side == side],
+        resume=(run_dir / "evaluations.jsonl").exists(),
+        on_record=on_record,
+    )
+    return chosen_serve(res, name=f"{cfg.task} {side} {seed}")
 
 
-def _ray_job(
-    side: TossSide, seed: int, cfg: TrainConfig, run_json: str | None, log: bytes, queue: Any, index: int
-) -> dict[str, Any] | None:
-    """Ray task: the run in a scratch folder seeded with the driver's partial log; records
-    are streamed to the driver through ``queue``; returns the chosen serve (JSON)."""
+def _ray_job(side: TossSide, seed: int, cfg: TrainConfig, run_json: str | None, log: bytes) -> Iterator[dict[str, Any]]:
+    """Ray task, a streaming generator: the run in a scratch folder seeded with the driver's
+    current log (``run_json`` and ``log``; a new run when ``log`` is empty).
+
+    Yields ``{"kind": "start", "node", "pid", "scratch"}`` first, then for a new run
+    ``{"kind": "run.json", "text"}`` ahead of its first record, ``{"kind": "record",
+    "record"}`` for every new evaluation as it is logged, and last ``{"kind": "done",
+    "serve"}`` (the chosen serve's JSON or None) or ``{"kind": "error", "message"}``. The
+    optimization runs in a thread of this task; nothing here waits in ``ray.get`` (a task
+    blocked there lends its CPU to another task: the reported three tasks on two CPUs)."""
+    import ray
+
     with tempfile.TemporaryDirectory() as tmp:
         run_dir = Path(tmp) / "run"
         run_dir.mkdir()
-        sent = [run_json is not None and bool(log)]
-        if sent[0]:
-            (run_dir / "run.json").write_text(run_json)  # type: ignore[arg-type]
+        yield {
+            "kind": "start",
+            "node": ray.get_runtime_context().get_node_id(),
+            "pid": os.getpid(),
+            "scratch": str(run_dir),
+        }
+        resumed = run_json is not None and bool(log)
+        if resumed:
+            (run_dir / "run.json").write_text(run_json or "")
             (run_dir / "evaluations.jsonl").write_bytes(log)
+        items: queue.Queue[dict[str, Any]] = queue.Queue()
+        args = (items, side, seed, cfg, run_dir, resumed)
+        thread = threading.Thread(target=_job_thread, args=args, name="serve-studio-run", daemon=True)
+        thread.start()
+        while True:
+            item = items.get()
+            yield item
+            if item["kind"] in ("done", "error"):
+                break
+        thread.join()
 
-        def on_record(rec: dict[str, Any]) -> None:
-            if not sent[0]:  # a new run: its run.json goes ahead of its first record
-                queue.put((index, {"run.json": (run_dir / "run.json").read_text()}))
-                sent[0] = True
-            queue.put((index, rec))
 
+def _job_thread(
+    items: queue.Queue[dict[str, Any]], side: TossSide, seed: int, cfg: TrainConfig, run_dir: Path, resumed: bool
+) -> None:
+    """The run of :func:`_ray_job`: its items put on ``items``, the last one ``done`` or ``error``."""
+    sent = [resumed]
+
+    def on_record(rec: dict[str, Any]) -> None:
+        if not sent[0]:  # a new run: its run.json goes ahead of its first record
+            items.put({"kind": "run.json", "text": (run_dir / "run.json").read_text()})
+            sent[0] = True
+        items.put({"kind": "record", "record": rec})
+
+    try:
         best = _run_job(side, seed, cfg, run_dir, workers=1, on_record=on_record)
-        return best.to_json() if best is not None else None
+    except StudioError as exc:
+        items.put({"kind": "error", "message": str(exc)})
+    except BaseException as exc:  # noqa: BLE001 - a bug or an interrupt: one message to the driver, never a hang
+        where = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
+        at = f" (at {Path(where.filename).name}:{where.lineno} in {where.name})" if where else ""
+        items.put({"kind": "error", "message": f"{type(exc).__name__}: {exc}{at}"})
+    else:
+        items.put({"kind": "done", "serve": best.to_json() if best is not None else None})
 
 
 def _finish(
@@ -268,26 +330,20 @@ def _finish(
     seconds: float,
 ) -> TrainedServe:
     """Evaluate the chosen serve on the mean toss, export it if legal, mark the run done."""
+    from studio.optimize.workflow import export_evaluation, hebo_provenance, make_robust
     from studio.serve.efforts import EffortLimitError
     from studio.serve.evaluate import evaluate_serve
 
     if best is None:
         return TrainedServe(index, run_dir, False, -math.inf, {}, None, seconds, "nothing evaluated")
-    if cfg.robustify:
-        from studio.optimize.robust import robustify_chosen
-
-        best = robustify_chosen(best, run_dir, evaluations=cfg.robustify, task=cfg.task, context=context).serve
+    best = make_robust(best, run_dir, evaluations=cfg.robustify, task=cfg.task, context=context)
     ev = evaluate_serve(best, context, task=cfg.task)
     row = _row(ev, cfg.task) if ev.legal else {}
     entry_id, reason = None, "" if ev.legal else ev.reason
     if ev.legal:
         try:
-            entry_id = library.add(
-                ev,
-                provenance={"kind": "hebo", "run": str(run_dir), "seed": seed},
-                task=cfg.task,
-                preparation=context.preparation(best.side),
-            ).id
+            provenance = hebo_provenance(run_dir, seed)
+            entry_id = export_evaluation(library, ev, context=context, task=cfg.task, provenance=provenance).id
         except EffortLimitError as err:  # legal but beyond the robot's efforts: kept in the run, not exported
             reason = f"not exported: {err}"
     reward = float(ev.reward.total)
@@ -387,6 +443,376 @@ def train_serves(
     return [results[i] for i in sorted(results)]
 
 
+class TrainingFailedError(StudioError):
+    """Training on a Ray cluster left runs unfinished: which, why, and that a rerun resumes them."""
+
+
+class _RunFailed(Exception):
+    """One run cannot go on (its message says why); the others can."""
+
+
+@dataclass
+class _RayRun:
+    """Driver-side state of one run trained as a Ray task (mutable: it follows the task
+    through resubmissions)."""
+
+    index: int
+    side: TossSide
+    seed: int
+    run_dir: Path
+    genomes: list[list[float]]
+    """Genome of every record the local log holds, by evaluation index."""
+    log: IO[str]
+    """The local ``evaluations.jsonl``, open for appending."""
+    t0: float = field(default_factory=time.perf_counter)
+    task: Any = None
+    """The current task's ``ObjectRefGenerator`` (None while a resubmission waits)."""
+    resubmit_at: float = 0.0
+    """When the run is resubmitted after a loss (``time.monotonic``)."""
+    node: str = ""
+    """Node of the current task (from its ``start`` item)."""
+    scratch: str = ""
+    """The task's scratch run folder (replaced by :attr:`run_dir` in its messages)."""
+    lost: list[str] = field(default_factory=list)
+    """The worker and node losses of this run, one line each."""
+    repeated: int = 0
+    """Records received again that the log held already (same index and genome; not appended)."""
+
+    @property
+    def log_path(self) -> Path:
+        return self.run_dir / "evaluations.jsonl"
+
+
+def _index_problem(records: Sequence[Any], k: int) -> str:
+    """Why line ``k + 1`` of a run log breaks the 0, 1, 2, ... order of evaluation indices."""
+    r = records[k]
+    text = f"line {k + 1}: record {k} has index {r.index}"
+    if isinstance(r.index, int) and 0 <= r.index < k and records[r.index].genome == r.genome:
+        text += f" and repeats line {r.index + 1} (a Ray retry of an earlier version appended records twice)"
+    return (
+        f"{text}: not one run's log, nothing was sent or changed. Lines 1-{k} are a valid log: keep only them "
+        f"(e.g. head -n {k}) to resume from there, or move the run folder away to train the run anew"
+    )
+
+
+def _held_records(run_dir: Path) -> list[Any]:
+    """The records of ``run_dir``'s log, checked before any of it is sent to a task: indices
+    0, 1, 2, ... and a ``run.json`` beside a non-empty log (DataFileError naming the file
+    and line otherwise; a torn last line is set aside as in :func:`studio.storage.jsonlog.read_jsonl`)."""
+    from studio.optimize.optimizer import EvaluationRecord
+
+    log_path = run_dir / "evaluations.jsonl"
+    records = read_jsonl(log_path, EvaluationRecord.from_json)
+    for k, rec in enumerate(records):
+        if rec.index != k:
+            raise DataFileError(log_path, _index_problem(records, k))
+        if not isinstance(rec.genome, list):
+            raise DataFileError(log_path, f"line {k + 1}: genome is not a list of numbers")
+    if records and not (run_dir / "run.json").is_file():
+        raise DataFileError(
+            log_path,
+            f"{len(records)} evaluations but no run.json beside it: the run cannot be resumed; move the folder away to train it anew",
+        )
+    return records
+
+
+def _open_run(index: int, side: TossSide, seed: int, run_dir: Path) -> _RayRun:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    records = _held_records(run_dir)
+    log = open(run_dir / "evaluations.jsonl", "a", encoding="utf-8")
+    return _RayRun(index, side, seed, run_dir, [list(r.genome) for r in records], log)
+
+
+def _submit(task: Any, run: _RayRun, cfg: TrainConfig) -> None:
+    """Start (or restart) the run's task from the driver's current log."""
+    run.log.flush()
+    resumed = bool(run.genomes)
+    log = run.log_path.read_bytes() if resumed else b""
+    meta = (run.run_dir / "run.json").read_text(encoding="utf-8") if resumed else None
+    run.task, run.node, run.scratch = task.remote(run.side, run.seed, cfg, meta, log), "", ""
+
+
+def _accept(run: _RayRun, rec: Any) -> None:
+    """Append a streamed record to the run's log unless the log holds it already.
+
+    The log holds records 0 .. n-1: a record with one of those indices and the same genome
+    is a repeat (not appended, counted), with another genome an error naming the run; index
+    n is appended (flushed and fsynced); anything else does not follow the log (an error)."""
+    from studio.optimize.optimizer import EvaluationRecord
+
+    held = len(run.genomes)
+    index = rec.get("index") if isinstance(rec, dict) else None
+    if isinstance(index, int) and 0 <= index < held:
+        if rec.get("genome") == run.genomes[index]:
+            run.repeated += 1
+            return
+        raise _RunFailed(
+            f"its Ray task sent record {index} with another genome than the log's record {index}: not appended (the log keeps its {held} records)"
+        )
+    if index != held:
+        raise _RunFailed(
+            f"its Ray task sent a record with index {index!r} after the log's {held} records: not appended"
+        )
+    try:
+        EvaluationRecord.from_json(rec)
+    except (KeyError, TypeError) as exc:
+        raise _RunFailed(f"its Ray task sent a malformed record {index} ({exc!r}): not appended") from None
+    write_line(run.log, rec)
+    run.genomes.append(list(rec["genome"]))
+
+
+def _lost_worker(exc: BaseException) -> str | None:
+    """One line naming the lost worker or node when ``exc`` (from a task's result) is one
+    (a retry from the log can succeed); None for other errors."""
+    from ray import exceptions as rex
+
+    lost = (
+        rex.WorkerCrashedError,
+        rex.NodeDiedError,
+        rex.ObjectLostError,
+        rex.RayActorError,
+        rex.OutOfMemoryError,
+        rex.RaySystemError,
+    )
+    cause = exc.cause if isinstance(exc, rex.RayTaskError) and isinstance(exc.cause, BaseException) else exc
+    return _first_line(cause) if isinstance(cause, lost) else None
+
+
+def _first_line(exc: BaseException) -> str:
+    """``Type: first sentence of the message`` (at most 300 characters), for one-line
+    reports (Ray's messages go on for lines; a wrapped cause is named, not the wrapper)."""
+    from ray.exceptions import RayTaskError
+
+    if isinstance(exc, RayTaskError) and isinstance(exc.cause, BaseException):
+        exc = exc.cause
+    lines = str(exc).strip().splitlines()
+    line = lines[0] if lines else ""
+    cut = line.find(". ")
+    line = line[: cut + 1] if cut > 0 else line
+    return f"{type(exc).__name__}: {line[:300]}{'...' if len(line) > 300 else ''}"
+
+
+def _on_item(run: _RayRun, item: Any) -> dict[str, Any] | None:
+    """Handle one item of a task (module doc of :func:`_ray_job`); the ``done`` item or None."""
+    kind = item.get("kind") if isinstance(item, dict) else None
+    if kind == "start":
+        run.node, run.scratch = str(item["node"]), str(item["scratch"])
+    elif kind == "run.json":
+        if not run.genomes:  # a new run's configuration; a resumed run keeps its own
+            (run.run_dir / "run.json").write_text(item["text"], encoding="utf-8")
+    elif kind == "record":
+        _accept(run, item["record"])
+    elif kind == "error":
+        message = str(item["message"])
+        raise _RunFailed(message.replace(run.scratch, str(run.run_dir)) if run.scratch else message)
+    elif kind == "done":
+        return item
+    else:
+        raise _RunFailed(f"its Ray task sent an unknown item {str(item)[:80]!r}")
+    return None
+
+
+def _step(run: _RayRun, cfg: TrainConfig) -> dict[str, Any] | None:
+    """Take the next item of the run's task (it must be ready); the ``done`` item or None.
+    A lost worker or node schedules the run's resubmission (:func:`_lost`); _RunFailed
+    when the run cannot go on."""
+    import ray
+    from ray.exceptions import RayError
+
+    try:
+        item = ray.get(next(run.task))
+    except StopIteration:
+        raise _RunFailed("its Ray task ended without a result") from None
+    except RayError as exc:
+        _lost(run, exc, cfg)
+        return None
+    return _on_item(run, item)
+
+
+def _lost(run: _RayRun, exc: BaseException, cfg: TrainConfig) -> None:
+    """The run's task failed with ``exc``: schedule its resubmission from the driver's log
+    (after 1 s per loss so far, at most 5 s: time for the cluster to mark a dead node), at
+    most ``cfg.ray_retries`` times; _RunFailed for other failures or too many losses."""
+    lost = _lost_worker(exc)
+    if lost is None:
+        raise _RunFailed(f"its Ray task failed: {_first_line(exc)}")
+    run.lost.append(lost)
+    if len(run.lost) > cfg.ray_retries:
+        raise _RunFailed(f"lost its Ray worker {len(run.lost)} times (last: {lost})")
+    delay = min(5.0, 1.0 * len(run.lost))
+    _LOG.warning(
+        "run %s: %s (node %s); resubmitted in %.0f s from the %d evaluations in its log (retry %d of %d)",
+        run.run_dir, lost, run.node[:12] or "?", delay, len(run.genomes), len(run.lost), cfg.ray_retries,
+    )  # fmt: skip
+    run.task, run.resubmit_at = None, time.monotonic() + delay
+
+
+def _cancel(run: _RayRun) -> None:
+    """Stop the run's task (best effort: it may have ended or its node be gone)."""
+    import ray
+
+    if run.task is None:
+        return
+    try:
+        ray.cancel(run.task, force=True)
+    except Exception:  # noqa: BLE001, S110 - nothing more to do about a task that cannot be cancelled
+        pass
+
+
+@dataclass
+class _CpuWatch:
+    """Ends the training when the cluster has had no CPU for ``limit`` seconds (its tasks
+    would wait forever), checking every ``every`` seconds."""
+
+    limit: float = 60.0
+    every: float = 5.0
+    last: float = field(default_factory=time.monotonic)
+    since: float | None = None
+
+    def check(self) -> None:
+        import ray
+
+        now = time.monotonic()
+        if now - self.last < self.every:
+            return
+        self.last = now
+        if ray.cluster_resources().get("CPU", 0.0) >= 1.0:
+            self.since = None
+        elif self.since is None:
+            self.since = now
+        elif now - self.since > self.limit:
+            raise _NoCpu(f"the Ray cluster has had no CPU for {self.limit:.0f} s (its nodes died or left)")
+
+
+class _NoCpu(Exception):
+    """The cluster cannot run a task any more."""
+
+
+class _Receiver(threading.Thread):
+    """Follows the runs' tasks in a thread of the driver, so that every item is taken as
+    soon as it is there while the driver's thread evaluates and exports finished runs (Ray
+    drops the items a task yielded but the driver had not taken when the task fails:
+    measured, a node killed while the driver exported another run lost 5 records). It
+    appends the records, resubmits runs whose worker or node was lost, and puts each
+    finished run with its ``done`` item on :attr:`done` (None when nothing is left)."""
+
+    def __init__(self, task: Any, runs: list[_RayRun], cfg: TrainConfig) -> None:
+        super().__init__(name="serve-studio-ray-receiver", daemon=True)
+        self.task, self.cfg, self.active = task, cfg, list(runs)
+        self.done: queue.Queue[tuple[_RayRun, dict[str, Any]] | None] = queue.Queue()
+        self.failed: dict[int, str] = {}
+        """Message of each run that cannot go on, by run index."""
+        self.error: BaseException | None = None
+        """What ended the following early (e.g. the driver lost the cluster)."""
+        self.halt = threading.Event()
+
+    def run(self) -> None:
+        try:
+            self._follow()
+        except BaseException as exc:  # noqa: BLE001 - handed to the driver's thread
+            self.error = exc
+        finally:
+            self.done.put(None)
+
+    def _follow(self) -> None:
+        import ray
+
+        watch = _CpuWatch()
+        while self.active and not self.halt.is_set():
+            now = time.monotonic()
+            for run in self.active:
+                if run.task is None and run.resubmit_at <= now:
+                    _submit(self.task, run, self.cfg)
+            tasks = [r.task for r in self.active if r.task is not None]
+            ready = ray.wait(tasks, num_returns=len(tasks), timeout=0.2)[0] if tasks else []
+            if not tasks:
+                time.sleep(0.2)
+            for gen in ready:
+                self._drain(next(r for r in self.active if r.task is gen))
+            try:
+                watch.check()
+            except _NoCpu as exc:
+                self._give_up(list(self.active), str(exc))
+
+    def _drain(self, run: _RayRun) -> None:
+        """Take every item of the run's task that is there."""
+        import ray
+
+        gen = run.task
+        while run.task is gen and ray.wait([gen], num_returns=1, timeout=0)[0]:
+            try:
+                item = _step(run, self.cfg)
+            except _RunFailed as exc:
+                self._give_up([run], str(exc))
+                return
+            if item is not None:
+                self.active.remove(run)
+                self.done.put((run, item))
+                return
+
+    def _give_up(self, runs: list[_RayRun], message: str) -> None:
+        for run in runs:
+            _cancel(run)
+            self.active.remove(run)
+            self.failed[run.index] = message
+
+
+def _drive(
+    task: Any,
+    runs: list[_RayRun],
+    cfg: TrainConfig,
+    finish: Callable[[_RayRun, HandServe | None], None],
+) -> dict[int, str]:
+    """Follow the runs' tasks (:class:`_Receiver`) and finish each run that is done, in
+    this thread; the messages of the runs that did not finish, by run index."""
+    from studio.serve.params import serve_from_json
+
+    receiver = _Receiver(task, runs, cfg)
+    receiver.start()
+    try:
+        while (event := receiver.done.get()) is not None:
+            run, item = event
+            finish(run, serve_from_json(item["serve"]) if item["serve"] is not None else None)
+    finally:
+        receiver.halt.set()
+        receiver.join(timeout=10.0)
+    if receiver.error is not None:
+        raise receiver.error
+    return receiver.failed
+
+
+def _failure_report(failed: dict[int, str], runs: list[_RayRun]) -> str:
+    """The message of :class:`TrainingFailedError`: each unfinished run, why, and its log."""
+    by_index = {r.index: r for r in runs}
+    lines = [f"{len(failed)} of the {len(runs)} runs trained on Ray did not finish:"]
+    for i in sorted(failed):
+        run = by_index[i]
+        lines.append(f"  {run.run_dir}: {failed[i]}; {len(run.genomes)} evaluations are logged in {run.log_path}")
+    lines.append(
+        "Run the same command again to resume them (finished runs are skipped, logged evaluations are not repeated)"
+    )
+    return "\n".join(lines)
+
+
+def _connect(address: str) -> bool:
+    """``ray.init`` for ``address`` unless Ray is initialized; True when it was started here."""
+    import ray
+
+    if ray.is_initialized():
+        return False
+    try:
+        if address == "local":
+            ray.init(include_dashboard=False, log_to_driver=False)
+        else:
+            ray.init(address=address, log_to_driver=False)
+    except Exception as exc:  # noqa: BLE001 - ray raises several unrelated types here
+        raise InvalidInputError(
+            f"train: cannot start or reach the Ray cluster at {address!r}: {_first_line(exc)} "
+            "(a cluster with token authentication needs RAY_AUTH_MODE=token and its token here: docs/cluster.md)"
+        ) from None
+    return True
+
+
 def _train_on_ray(
     cfg: TrainConfig,
     todo: list[tuple[int, TossSide, int, Path]],
@@ -396,66 +822,44 @@ def _train_on_ray(
     results: dict[int, TrainedServe],
     progress: Callable[[TrainedServe, int], None] | None,
 ) -> None:
+    """The runs ``todo`` as Ray tasks (:func:`_ray_job`, one CPU each, resubmitted by this
+    driver from its current log when a worker or node is lost); TrainingFailedError naming
+    the runs that did not finish (their logs resume on a rerun)."""
     import ray
-    from ray.util.queue import Empty, Queue
+    from ray.exceptions import RayError
 
-    from studio.serve.params import serve_from_json
+    runs: list[_RayRun] = []
+    started_here = False
 
-    started_here = not ray.is_initialized()
-    if started_here:
-        try:
-            if address == "local":
-                ray.init(include_dashboard=False, log_to_driver=False)
-            else:
-                ray.init(address=address, log_to_driver=False)
-        except Exception as exc:  # noqa: BLE001 - ray raises several unrelated types here
-            raise InvalidInputError(f"train: cannot start or reach the Ray cluster at {address!r}: {exc}") from exc
-    logs: dict[int, Any] = {}
-    folders = {i: run_dir for i, _, _, run_dir in todo}
+    def finish(run: _RayRun, best: HandServe | None) -> None:
+        elapsed = time.perf_counter() - run.t0
+        if run.repeated:
+            _LOG.warning("run %s: %d records received again were not appended", run.run_dir, run.repeated)
+        results[run.index] = _finish(run.index, run.run_dir, run.seed, best, cfg, context, library, elapsed)
+        if progress:
+            progress(results[run.index], cfg.count)
+
     try:
-        queue = Queue()
-        task = ray.remote(num_cpus=1)(_ray_job)
-        pending: dict[Any, tuple[int, int, float]] = {}
-        for i, side, seed, run_dir in todo:
-            run_dir.mkdir(parents=True, exist_ok=True)
-            log_path, meta = run_dir / "evaluations.jsonl", run_dir / "run.json"
-            log = log_path.read_bytes() if log_path.exists() and meta.exists() else b""
-            log = log[: log.rfind(b"\n") + 1]  # a torn last line is dropped, as optimize_serve does
-            log_path.write_bytes(log)
-            logs[i] = open(log_path, "ab")
-            ref = task.remote(side, seed, cfg, meta.read_text() if log else None, log, queue, i)
-            pending[ref] = (i, seed, time.perf_counter())
-
-        def drain() -> None:
-            """Append the streamed records to the local run folders (run.json first)."""
-            while True:
-                try:
-                    i, rec = queue.get_nowait()
-                except Empty:
-                    return
-                if "run.json" in rec:
-                    (folders[i] / "run.json").write_text(rec["run.json"])
-                else:
-                    logs[i].write((json.dumps(rec, allow_nan=False) + "\n").encode("utf-8"))
-                    logs[i].flush()
-
-        while pending:
-            ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
-            drain()
-            for ref in ready:
-                i, seed, t0 = pending.pop(ref)
-                best_json = ray.get(ref)
-                drain()  # the task put its last records before returning
-                logs[i].close()
-                best = serve_from_json(best_json) if best_json is not None else None
-                results[i] = _finish(i, folders[i], seed, best, cfg, context, library, time.perf_counter() - t0)
-                if progress:
-                    progress(results[i], cfg.count)
+        for i, side, seed, run_dir in todo:  # every log is checked before the cluster is reached
+            runs.append(_open_run(i, side, seed, run_dir))
+        started_here = _connect(address)
+        task = ray.remote(num_cpus=1, max_retries=0)(_ray_job)  # retried here, from the driver's log
+        for run in runs:
+            _submit(task, run, cfg)
+        failed = _drive(task, runs, cfg, finish)
+    except RayError as exc:
+        held = ", ".join(f"{r.run_dir.name}: {len(r.genomes)}" for r in runs)
+        raise TrainingFailedError(
+            f"the Ray cluster failed while training ({_first_line(exc)}); the evaluations received are logged "
+            f"({held}): run the same command again to resume"
+        ) from None
     finally:
-        for f in logs.values():
-            f.close()
+        for run in runs:
+            run.log.close()
         if started_here:
             ray.shutdown()
+    if failed:
+        raise TrainingFailedError(_failure_report(failed, runs))
 
 
 def _stats(rows: Sequence[dict[str, float]], key: str) -> str:

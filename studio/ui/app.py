@@ -139,14 +139,6 @@ class StudioApp:
             self.message("**Skipped unreadable serve files:**  \n" + "  \n".join(problems[:10]))
         return fallback_serve()
 
-    def __getattr__(self, name: str) -> Any:
-        """The serve controls as attributes of the app (``app.vx`` is ``app.form.vx``), as
-        scripts such as ``benchmarks/studio_latency.py`` use them."""
-        form = self.__dict__.get("form")
-        if form is not None and not name.startswith("_") and name in vars(form):
-            return getattr(form, name)
-        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
-
     # -- GUI construction -----------------------------------------------------------
 
     def _build_gui(self) -> None:

@@ -53,6 +53,7 @@ from bokeh.plotting import figure
 from studio.errors import StudioError
 from studio.library.selection import entry_cluster, net_state, spin_cluster  # noqa: F401 - re-exported
 from studio.library.store import INDEX_NAME, LibraryEntry, ServeLibrary
+from studio.optimize.workflow import provenance_run
 from studio.physics.court import DEFAULT_COURT
 from studio.serve.params import LimitScale
 from studio.ui.reference import HUMAN, ROBOT, ReferenceServes, cached_reference_serves
@@ -440,9 +441,8 @@ def run_folder(entry: LibraryEntry, runs_dir: Path) -> Path | None:
 
     Relative run paths are taken from the current folder (as the CLI wrote them). A path
     outside ``runs_dir`` is not followed (the index is user data)."""
-    prov = entry.data.get("provenance")
-    run = prov.get("run") if isinstance(prov, dict) and prov.get("kind") == "hebo" else None
-    if not isinstance(run, str) or not run:
+    run = provenance_run(entry.data)
+    if run is None:
         return None
     path = Path(run).resolve()
     root = runs_dir.resolve()
@@ -566,6 +566,19 @@ class LibraryDashboard:
         self.error: str | None = None
         """Message of the last library or serve error (None when all is well)."""
 
+        self._build_filters()
+        self._build_table()
+        self._build_views(reference_text)
+        self._build_serve_actions(studio_url)
+        self.selected_id: str | None = None
+        self._wire()
+        self.layout = self._build_layout()
+        self.reload()
+
+    # -- layout ------------------------------------------------------------------------
+
+    def _build_filters(self) -> None:
+        """The status line, the reload button, the table filters and the scatter's axes."""
         self.status = pn.pane.Alert("", alert_type="info", visible=False, sizing_mode="stretch_width")
         self.reload_button = pn.widgets.Button(label="Reload library", color="primary", width=160)
         self.side = pn.widgets.Select(label="Toss side", options=[ALL], value=ALL, width=130)
@@ -573,6 +586,9 @@ class LibraryDashboard:
         self.legal = pn.widgets.Select(label="Legality", options=[ALL, "legal", "illegal"], value=ALL, width=130)
         self.cluster = pn.widgets.Select(label="Spin cluster", options=[ALL, *CLUSTERS], value=ALL, width=160)
         self.axes = pn.widgets.RadioButtonGroup(label="Scatter", options=list(SCATTER_AXES), value=SCATTER_AXES[0])
+
+    def _build_table(self) -> None:
+        """The library table (one row selectable)."""
         self.tabulator = pn.widgets.Tabulator(
             self.table,
             show_index=False,
@@ -592,6 +608,9 @@ class LibraryDashboard:
                 },
             },
         )
+
+    def _build_views(self, reference_text: str) -> None:
+        """The spin plots, the selected serve's panes, convergence and match statistics."""
         self.scatter = pn.pane.Bokeh(spin_scatter(self.table, reference=self.reference), sizing_mode="stretch_width")
         self.polar = pn.pane.Bokeh(spin_polar(self.table, reference=self.reference), sizing_mode="stretch_width")
         self.reference_info = pn.pane.Markdown(
@@ -606,6 +625,9 @@ class LibraryDashboard:
         self.top_view = pn.pane.Bokeh(None, sizing_mode="stretch_width")
         self.side_view = pn.pane.Bokeh(None, sizing_mode="stretch_width")
         self.studio_link = pn.pane.Markdown("", sizing_mode="stretch_width")
+
+    def _build_serve_actions(self, studio_url: str | None) -> None:
+        """The selected serve's "Download serve JSON" and "Open in studio" buttons."""
         self.download = pn.widgets.FileDownload(
             callback=self._serve_json,
             filename="serve.json",
@@ -618,16 +640,19 @@ class LibraryDashboard:
         self.open_button.on_click(self._on_open_click)
         if studio_url:  # the browser side: bring up the studio tab (named, so it is reused)
             self.open_button.js_on_click(args={"url": studio_url}, code="window.open(url, 'serve-studio')")
-        self.selected_id: str | None = None
 
+    def _wire(self) -> None:
+        """The widgets' callbacks: reload, filters, scatter axes, table selection."""
         self.reload_button.on_click(lambda _event: self.reload())
         for w in (self.side, self.task, self.legal, self.cluster):
             w.param.watch(lambda _event: self._refresh(), "value")
         self.axes.param.watch(lambda _event: self._redraw_scatter(), "value")
         self.tabulator.param.watch(lambda _event: self._on_selection(), "selection")
 
+    def _build_layout(self) -> pn.Column:
+        """The page: header, filters, table, plots beside the selected serve, convergence, matches."""
         header = pn.pane.Markdown(f"## Serve library\n`{self.library.folder}`", sizing_mode="stretch_width")
-        self.layout = pn.Column(
+        return pn.Column(
             pn.Row(header, self.reload_button, sizing_mode="stretch_width"),
             self.status,
             pn.Row(self.side, self.task, self.legal, self.cluster),
@@ -652,7 +677,6 @@ class LibraryDashboard:
             self.match,
             sizing_mode="stretch_width",
         )
-        self.reload()
 
     # -- data --------------------------------------------------------------------------
 

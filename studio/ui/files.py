@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from studio.errors import DataFileError, InvalidInputError, StudioError
+from studio.optimize.workflow import export_evaluation
 from studio.paths import example_serves_dir
 from studio.serve.params import MAX_SERVE_BYTES, HandServe, load_serve, save_serve, serve_from_json
 from studio.storage.jsonfile import lone_surrogate, parse_json
@@ -293,8 +294,6 @@ class FilesPanel:
     def export(self) -> None:
         """Add the newest evaluation to the library (refused beyond an effort limit unless
         "Export beyond effort limits" is ticked: then the raised limits are recorded)."""
-        from studio.library.store import ServeLibrary
-
         evaluation, efforts = self.host.latest()
         if evaluation is None:
             self.host.message("**Export failed:** nothing evaluated yet")
@@ -302,10 +301,14 @@ class FilesPanel:
         limits = efforts.peak_limits() if efforts is not None and self.export_beyond.value else {}
         library_dir = self.host.library_dir
         try:
-            entry = ServeLibrary(library_dir).add(
-                evaluation, provenance={"kind": "hand-designed", "tool": "studio"}, task=self.host.controls().task,
-                preparation=self.host.context.preparation(evaluation.serve.side), effort_limits=limits,
-            )  # fmt: skip
+            entry = export_evaluation(
+                library_dir,
+                evaluation,
+                context=self.host.context,
+                task=self.host.controls().task,
+                provenance={"kind": "hand-designed", "tool": "studio"},
+                effort_limits=limits,
+            )
             verdict = "legal" if evaluation.legal else f"NOT legal ({evaluation.reason})"
             beyond = (
                 f" Effort limits raised on purpose: {', '.join(f'{n} {v:g}' for n, v in limits.items())}."

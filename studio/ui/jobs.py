@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from studio.errors import InvalidInputError, StudioError
+from studio.optimize.workflow import chosen_serve, new_run_dir
 from studio.serve.evaluate import EvaluationContext
 from studio.serve.params import HandServe, ServeParams
 from studio.ui.checks import Choice, Flag, InputRefused, Number, Press, shown
@@ -241,10 +242,10 @@ class JobRunner:
     ) -> None:
         """A new HEBO run from the seeds, or with ``run`` the continuation of that run (its own
         seeds, seed, population, tosses and limits; at least its own iterations)."""
-        from studio.optimize.optimizer import optimize_serve
+        from studio.optimize.optimizer import OptimizeOptions, optimize_serve
 
         side, task = controls.serve.side, controls.task
-        run_dir = self.runs_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{side}-{task}"
+        run_dir = new_run_dir(self.runs_dir, side, task)
         scale = controls.serve.limit_scale
         if run is not None:
             side, task, run_dir, population, tosses, seed, scale = (
@@ -264,11 +265,20 @@ class JobRunner:
                 if run is not None
                 else f"evaluating {len(seeds)} seed(s) ..."
             )
+            options = OptimizeOptions(
+                side=side,
+                task=task,
+                iterations=iterations,
+                population=population,
+                workers=workers,
+                tosses=tosses,
+                seed=seed,
+                limit_scale=scale,
+            )
+            progress = self._progress(run_dir, side, task, scale)
             result = optimize_serve(
-                side=side, task=task, run_dir=run_dir, seeds=seeds, iterations=iterations, population=population,
-                workers=workers, tosses=tosses, seed=seed, progress=self._progress(run_dir, side, task, scale),
-                stop=self.stop_event, limit_scale=scale, resume=run is not None,
-            )  # fmt: skip
+                options, run_dir=run_dir, seeds=seeds, resume=run is not None, stop=self.stop_event, progress=progress
+            )
             self._report_optimization(result, run_dir, task, seed)
         except Exception as err:  # noqa: BLE001 - shown in the panel, the studio keeps running
             self.opt_md.content = (
@@ -280,12 +290,11 @@ class JobRunner:
 
     def _report_optimization(self, result: OptimizationResult, run_dir: Path, task: str, seed: int) -> None:
         """Load the chosen serve and say how it did."""
-        if result.best is None or result.summary is None:
+        chosen = chosen_serve(result, name=f"{task} optimized", notes=f"HEBO run {run_dir.name}, seed {seed}")
+        if chosen is None or result.summary is None:
             self.opt_md.content = "**Nothing evaluated.**"
             return
-        self.host.load(
-            replace(result.best, name=f"{task} optimized", task=task, notes=f"HEBO run {run_dir.name}, seed {seed}")
-        )
+        self.host.load(chosen)
         s = result.summary
         self.opt_md.content = (
             f"**{'Stopped' if result.stopped else 'Done'}:** {result.evaluations} evaluations in {result.timings.get('total', 0):.0f} s. "
