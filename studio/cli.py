@@ -1029,6 +1029,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except OSError as err:  # the file system refused (disk full, permissions, a file where a folder goes)
+        where = f"{err.filename}: " if err.filename else ""
+        print(f"serve-studio {args.command}: error: {where}{err.strerror or err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -3,7 +3,11 @@
 Classes covered: serve files (encodings, nesting, non-finite and huge numbers, lone
 surrogates, wrong types, unknown fields, values outside physical ranges, empty files,
 FIFOs, folders, missing files); library indexes (the same classes inside entries);
-match logs (bad lines). For each case every command must exit with its error code and
+match logs (bad lines); command-line numbers out of range; a file system that refuses a
+write. Elsewhere: toss CSVs (tests/test_toss_limits.py), run logs and kills
+(tests/test_optimizer.py, tests/test_training_ray*.py), concurrent writers
+(tests/test_filelock.py, tests/test_library.py), the studio's inputs and foreign origins (tests/test_ui_inputs.py,
+tests/test_app_browser.py). For each case every command must exit with its error code and
 a message naming the file and the problem, never a traceback, and leave every file it
 could not read byte for byte as it was.
 """
@@ -202,3 +206,14 @@ def test_command_line_numbers_are_bounded(argv: list[str], message: str, capsys:
     with pytest.raises(SystemExit) as stop:
         main(argv)
     assert stop.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_a_file_system_refusal_is_a_message_naming_the_path(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Class: the file system refuses a write (here a file where a folder goes; disk full and
+    permissions take the same path): exit 2 with the path, no traceback."""
+    blocker = tmp_path / "file"
+    blocker.write_text("x", encoding="utf-8")
+    code = main(["toss", "--generate", "--out", str(blocker / "sub"), "--n", "3"])
+    err = capsys.readouterr().err
+    assert code == 2 and f"{blocker / 'sub'}: Not a directory" in err and "Traceback" not in err
+    assert blocker.read_text(encoding="utf-8") == "x"
