@@ -1,11 +1,12 @@
 """HEBO over a normalized box [0, 1]^d, with every quirk of ``hebo`` 0.3.6 handled here.
 
-The quirks (measured on ``hebo`` 0.3.6 with pymoo 0.6.2) and what this adapter does:
+The quirks (found in ``hebo`` 0.3.6 with pymoo 0.6.2) and what this adapter does:
 
 - ``HEBO.suggest`` refits its GP from scratch on *all* observations and runs NSGA-II with
-  hard-coded 100 individuals x 100 generations: ~2 s per call at 200 observations, ~30 s at
-  2000 (10-D). The adapter re-implements ``suggest`` with the same algorithm (power
-  transform, GP, MACE acquisition, NSGA-II, the same candidate selection) but a capped
+  hard-coded 100 individuals x 100 generations, so a call costs seconds and grows with the
+  observations (figures: ``docs/optimization.md#the-hebo-adapter-and-its-gp``). The adapter
+  re-implements ``suggest`` with the same algorithm (power transform, GP, MACE
+  acquisition, NSGA-II, the same candidate selection) but a capped
   training set, GP fits warm-started from the previous batch's fit with a cold refit
   every few batches, and a configurable acquisition effort run on plain arrays
   (:class:`HeboConfig`, :func:`lean_nsga2`).
@@ -52,23 +53,17 @@ LOG = logging.getLogger("studio.hebo")
 class HeboConfig:
     """Cost knobs of one HEBO suggestion.
 
-    Defaults: ~0.12 s of CPU per batch of 20 at 10-D (median; mean 0.15 s), flat in the
-    number of observations once the training cap is reached, against 0.38 s with cold
-    fits and pymoo's NSGA-II (:meth:`full_refit`, the defaults before warm starts), ~2 s
-    at 200 and ~30 s at 2000 observations with HEBO's own settings. Measured as process
-    CPU time replaying the 99 overlapped suggestions of a recorded 2000-evaluation serve
-    run (``topspin_velocity``, seed 0) on the shared 2-core machine at load average 8-10
-    (other users): warm starts alone took it from 0.38 to 0.18 s, the lean NSGA-II
-    (same 48 x 25 search) to 0.12 s. The cap keeps the GP a local model around the best
-    points (the ones the acquisition cares about) plus the newest batch information.
-    Best reward at 2000 evaluations over seeds 0-4 (topspin_velocity, right toss, mean
-    toss per evaluation, overlapped loop): cold fits +0.87 +1.52 +1.72 +1.39 +1.41 (mean
-    +1.38), warm starts +1.13 +1.75 +1.71 +1.46 +1.25 (+1.46), warm starts and the lean
-    NSGA-II (the defaults) +1.66 +1.77 +1.77 +1.72 +1.29 (+1.64): no loss beyond the
-    seed-to-seed spread. 48 x 25 NSGA-II (1200 acquisition
-    evaluations instead of HEBO's 10 000) did as well as HEBO's defaults on the serve
-    task (one seed: best reward +0.90 vs +0.87 at 400 evaluations, +1.23 in 79 s vs +1.13
-    in 149 s at 800), which is evidence on one task and seed, not a tuning study.
+    Defaults: the CPU cost of a suggestion stays flat in the number of observations once
+    the training cap is reached, several times below cold fits with pymoo's NSGA-II
+    (:meth:`full_refit`, the defaults before warm starts) and far below HEBO's own
+    settings, whose cost grows with the observations; the warm starts and the lean
+    NSGA-II each take a share of the saving. The cap keeps the GP a local model around the
+    best points (the ones the acquisition cares about) plus the newest batch information.
+    Over five seeds of 2000 evaluations the defaults lost no reward beyond the
+    seed-to-seed spread, and the 48 x 25 NSGA-II (1200 acquisition evaluations instead of
+    HEBO's 10 000) did as well as HEBO's defaults on the serve task (one task and seed:
+    not a tuning study). Figures: ``docs/optimization.md#training-time`` and
+    ``docs/optimization.md#optimizers-at-equal-evaluations``.
     """
 
     max_train: int | None = 256
@@ -91,15 +86,14 @@ class HeboConfig:
     first suggestions are scrambled Sobol points."""
     torch_threads: int = 1
     """Torch threads during a suggestion (HEBO forces 1 at import); restored afterwards.
-    Alone, two threads make a batch of 20 at 256 points 20 % cheaper (0.48 s against
-    0.60 s on 2 cores), but the optimizer suggests while its workers evaluate
-    (``overlap``): there two threads oversubscribe the cores and the 2000-evaluation
-    run took 111.6 s instead of 79.6 s."""
+    Alone, two threads make a suggestion somewhat cheaper, but the optimizer suggests while
+    its workers evaluate (``overlap``): there two threads oversubscribe the cores and a run
+    takes markedly longer (figures: ``docs/optimization.md#the-hebo-adapter-and-its-gp``)."""
     fast_gp: bool = True
     """Fit and query HEBO's GP through :class:`studio.optimize.hebo_gp.FastGP` (the same model, priors,
     fit and random draws in plain torch, exact posterior variance) instead of gpytorch:
-    on 256 points a 60-epoch fit takes ~0.28 s instead of ~0.50 s and an acquisition call
-    on 48 points ~0.4 ms instead of ~2 ms."""
+    a fit takes about half the time and an acquisition call a fraction of it (figures:
+    ``docs/optimization.md#the-hebo-adapter-and-its-gp``)."""
     fantasize: bool = True
     """With suggestions made while a batch is still being evaluated (``pending`` points of
     :meth:`HeboAdapter.suggest`), enter the pending points into the GP at their posterior
@@ -109,12 +103,13 @@ class HeboConfig:
     """Run NSGA-II on plain float vectors (pymoo's SBX/PM operators, numpy duplicate
     elimination) instead of HEBO's mixed-variable setup (the same real-valued operators
     behind per-individual dicts and an O(n^2) Python duplicate check): the same search,
-    ~4x cheaper for an all-continuous genome."""
+    several times cheaper for an all-continuous genome (``docs/optimization.md#the-hebo-adapter-and-its-gp``)."""
     lean_nsga: bool = True
     """With :attr:`vector_nsga`: run NSGA-II on plain arrays (:func:`lean_nsga2`: pymoo's SBX,
     polynomial mutation, non-dominated sorting and crowding-distance functions, the same
     tournament, duplicate elimination and survival) instead of through pymoo's algorithm
-    objects, whose per-individual bookkeeping cost ~4 ms per generation of 48 on 2 cores.
+    objects, whose per-individual bookkeeping dominated a generation's cost
+    (``docs/optimization.md#training-time``).
     ``False``: pymoo's ``NSGA2`` (its own random stream: other suggestions)."""
     refit_every: int | None = 10
     """Batches between cold GP fits (:attr:`gp_epochs` epochs from HEBO's initial values).
@@ -128,17 +123,17 @@ class HeboConfig:
     re-creates it. Needs :attr:`fast_gp` (HEBO's gpytorch GP is always fitted cold)."""
     warm_epochs: int = 10
     """pSGLD epochs of a warm-started GP fit (the learning rate is :attr:`gp_lr`). On the
-    79 warm fits of a recorded serve run (k = 5) 10 warm epochs ended at a loss 0.05 nats
-    per point *below* a 60-epoch cold fit's on the same data (median; HEBO's 60 epochs do
-    not converge), at a sixth of its cost; the worst ones (new data far from the old
-    model) are caught by :attr:`refit_tolerance`."""
+    warm fits of a recorded serve run 10 warm epochs typically ended at a loss slightly
+    *below* a 60-epoch cold fit's on the same data (HEBO's 60 epochs do not converge), at
+    a fraction of its cost; the worst ones (new data far from the old model) are caught by
+    :attr:`refit_tolerance` (figures: ``docs/optimization.md#training-time``)."""
     refit_tolerance: float = 0.3
     """A warm fit whose loss (negative log marginal likelihood with the priors, per
     training point) ends more than this above the loss of the fit it started from (on
     that fit's data) is redone cold [nats per point]. Replayed on that run's chain it
-    flagged 6 of the 79 warm fits, all of them more than 0.15 above a cold fit; the 4
-    other such fits came right after a flagged one (which, redone cold, restarts the
-    chain). In 2000-evaluation runs 1 to 8 of the 98 fits were redone."""
+    flagged only warm fits well above a cold fit, and the few such fits it let through came
+    right after a flagged one (which, redone cold, restarts the chain); a 2000-evaluation
+    run redoes only a few of its fits (figures: ``docs/optimization.md#training-time``)."""
 
     def __post_init__(self) -> None:
         if self.max_train is not None and self.max_train < 8:

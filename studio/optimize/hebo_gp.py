@@ -16,7 +16,7 @@ input kind (what :mod:`studio.optimize.hebo_adapter` uses):
   scales), so a seeded fit draws the same noise as HEBO's (and the same numpy draws).
 
 What differs, and why: gpytorch spends most of a fit in per-call overhead (lazy tensors,
-settings, memoization): ~9-12 ms per epoch at 256 points on this 2-core machine. Here one
+settings, memoization; figures: ``docs/optimization.md#the-hebo-adapter-and-its-gp``). Here one
 epoch is a kernel matrix, one Cholesky factorization and an analytic gradient of the
 Gaussian log-likelihood with respect to the kernel matrix, ``(K^-1 - a a^T) / 2`` with
 ``a = K^-1 r`` (one ``cholesky_inverse`` instead of autograd through the factorization).

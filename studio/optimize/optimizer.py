@@ -37,14 +37,11 @@ before it is in the log, and the resume evaluates the rest of the budget once).
 
 Robust by default: ``tosses=5`` recorded tosses per evaluation (the paper's multi-toss
 training; ``serve-studio optimize`` and ``train`` use 5 too) and the legal-first, spread
-final pick above. Measured over 5 seeds of 2000 evaluations (topspin_velocity, right toss,
-overlapped loop; the chosen serve then evaluated on 10 recorded tosses drawn apart from
-the run and on all 20 recordings): with the mean toss only (``tosses=1``) and the pick
-before issue 16 the chosen serve was legal on 1, 10, 9, 4, 10 of 10 fresh tosses (3, 19,
-18, 14, 20 of 20; mean reward on them -0.69 to +1.52, mean +0.71); with the defaults on
-10 of 10 for every seed (20 of 20; +0.66 to +1.51, mean +1.13). Its cost: a 5-toss
-evaluation takes ~1.75x the CPU of a mean-toss one (24 against 14 ms: the motion is
-planned once, each toss is a flight), the final pick ~0.2 s.
+final pick above. Over five seeds the mean toss only (``tosses=1``) with the pick before
+issue 16 chose, on some seeds, serves illegal on most fresh tosses; the defaults chose
+serves legal on all of them. Its cost: a 5-toss evaluation takes less than twice the CPU of a
+mean-toss one (the motion is planned once, each toss is a flight); the final pick is small
+beside the run. Figures: ``docs/optimization.md#training-time`` ("Robust by default").
 """
 
 from __future__ import annotations
@@ -373,7 +370,7 @@ class EvaluatorPool:
     Each worker builds a training :class:`~studio.serve.evaluate.EvaluationContext` once
     (initializer; :meth:`~studio.serve.evaluate.EvaluationContext.for_training`, IPOPT fallback
     off unless ``ipopt_fallback``) and warms it up for ``side``. The workers are spawned
-    at construction and initialize in the background (about 3 s) while the caller goes on.
+    at construction and initialize in the background (a few seconds) while the caller goes on.
     Every candidate is planned with ``limit_scale`` (:class:`~studio.serve.params.LimitScale`).
     Use as a context manager; ``evaluate`` overrides the real evaluation (in-process).
     The workers end with this process (:func:`_die_with_parent`); if one dies, :meth:`map`
@@ -729,9 +726,9 @@ def _final_candidates(
     Legal first because the mean reward of a serve that misses a few tosses can still
     beat that of one legal on all of them (a miss costs a bounded penalty), and the run's
     serve should be one that is legal on most real tosses. The spread keeps the
-    candidates from being one basin's near-copies: in a measured 5-toss run (seed 1) the
-    5 best distinct candidates were all one serve legal on 15 of the 20 recordings; the
-    10 best at least 0.05 apart included one legal on all 20.
+    candidates from being one basin's near-copies (in a recorded run the best distinct
+    candidates were all one serve, and the spread brought in a more robust one:
+    ``docs/optimization.md#training-time``).
     """
     candidates: list[FinalCandidate] = []
     if not records or top_k <= 0:
@@ -819,11 +816,10 @@ class OptimizeOptions:
     overlap: bool | None = None
     """Suggest batch i+1 while the worker processes evaluate batch i, from the observations
     up to batch i-1, with batch i as pending points (kriging believer,
-    :attr:`HeboConfig.fantasize`): the suggestion runs beside the evaluation (2000
-    evaluations: 74.0 s instead of 82-87 s sequential). At 800 evaluations over 5 seeds it
-    reached +0.90 on average (+0.70 to +1.46, legal serves on all seeds) against +0.25
-    sequential (-3.0 to +1.29, one seed without a legal serve): within the seed-to-seed
-    spread. ``None``: on when ``workers > 1`` and the evaluation is the real one (with one
+    :attr:`HeboConfig.fantasize`): the suggestion runs beside the evaluation, so a run
+    takes less wall time, and the reward stays within the seed-to-seed spread of the
+    sequential loop (figures: ``docs/optimization.md#sequential-against-overlapped-suggestions``).
+    ``None``: on when ``workers > 1`` and the evaluation is the real one (with one
     process the evaluation cannot run beside the suggestion); on resume the run's own loop."""
     limit_scale: LimitScale | None = None
     """The paper's dynamic limit expansion (:class:`~studio.serve.params.LimitScale`): every

@@ -3,9 +3,9 @@
 A serve designed on the mean toss path, by hand or by HEBO, often stays legal on only a
 few of the recorded tosses: the ball it meets is a centimetre off. The paper makes serves
 robust by training on sampled tosses (``optimize_serve(tosses=K)``), a global search that
-may leave the kind of serve it started from (session 11: on the left backspin example an
-800-evaluation run on the ``backspin_net`` task returned only topspin serves among its 40
-best legal candidates). :func:`robustify_serve` searches *around* the serve instead:
+may leave the kind of serve it started from (a run from a backspin example returned only
+topspin serves among its best legal candidates: ``docs/evaluation.md#making-a-serve-robust``).
+:func:`robustify_serve` searches *around* the serve instead:
 CMA-ES (``cma``) on the normalized genome (:class:`studio.serve.params.GenomeBounds`), started at
 the serve with step ``sigma``, minimizing
 
@@ -20,7 +20,8 @@ the starting serve when none beats it: never worse than the start.
 
 Every candidate is planned once on the mean toss (the toss commands are the same for
 every recorded toss) and flown on each recorded toss, as :func:`studio.serve.evaluate.evaluate_robust`
-does: ~0.1 s a candidate with the 20 shipped tosses.
+does: one plan and 20 flights a candidate with the shipped tosses (timing:
+``docs/measured.md``).
 
 Resume: with ``run_dir`` every evaluation is appended to ``robustify.jsonl`` (flushed and
 fsynced) next to ``robustify.json`` (settings). CMA-ES's candidates depend only on its

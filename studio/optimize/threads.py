@@ -2,10 +2,10 @@
 
 numpy-free on purpose: :mod:`studio.cli` sets these variables *before* numpy loads (the
 BLAS/OpenMP pools read them once, at import), and :mod:`studio.optimize.optimizer` sets them in
-its evaluation workers. Measured on the 2-core sandbox: with the default pools (one
-thread per core) evaluation workers oversubscribe the cores and one evaluation takes
-~3x longer (170 ms instead of 55 ms per evaluation on 2 workers); four in-process runs
-each kept a second thread busy (~1/3 of the main thread's CPU) and ran ~3x slower.
+its evaluation workers. With the default pools (one thread per core) evaluation workers
+oversubscribe the cores and each evaluation takes several times longer, and in-process
+runs each keep a second thread busy and run several times slower (figures:
+``docs/optimization.md#hebo-runs``).
 """
 
 from __future__ import annotations

@@ -1142,7 +1142,7 @@ def calibrate_flight(
         folds: number of rally groups of the rally cross-validation.
         seed: seed of the rally grouping.
         player_cv, rally_cv: run the leave-one-player-out / rally cross-validations
-            (each refits the model per fold: ~30 s a fold).
+            (each refits the model per fold, the slow part: ``docs/measured.md``).
 
     Raises:
         DataFileError: the file is missing or malformed.

@@ -19,7 +19,7 @@ FloatArray = npt.NDArray[np.float64]
 def chain_transition(dynamics: JointDynamics, delta: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Closed-form exact transition of the chain Z = [u, u', u'', q, q'] under a jerk
     held constant for ``delta`` seconds (same result as ``dynamics.jerk_chain(delta)``,
-    vectorised and ~100x faster).
+    vectorised and much faster: ``docs/planner.md#planner-benchmark``).
 
     The command part is the cubic; the joint part is split into the polynomial
     particular solution ``q_p = u - c1 u' + c3 u'' + c4 u'''`` of
@@ -113,7 +113,8 @@ def free_response_terms(wn: FloatArray, zeta: FloatArray, d: FloatArray) -> tupl
 class FreeResponseTable:
     """``exp(lam j dt)``, ``j = 0, 1, ...``, ``lam = -zeta wn + i wd`` per joint: the free
     response of under-damped joints on the output grid, grown on demand (real and
-    imaginary parts as real arrays: numpy's complex product is ~6x slower)."""
+    imaginary parts as real arrays: numpy's complex product is several times slower,
+    ``docs/planner.md#planner-benchmark``)."""
 
     def __init__(self, dynamics: JointDynamics, dt: float) -> None:
         self.dt = dt

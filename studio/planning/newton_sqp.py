@@ -32,10 +32,9 @@ max(_FUNNEL, 2 x current); longer steps are halved."""
 REDUCED_STEP_STOP: Final[float] = 5e-2
 """Reduced problem: the Newton-SQP stops after a full step smaller than this (scaled
 variables, max norm) once the racket errors are below 1 % of their tolerances. On the
-200 targets of ``benchmarks/planner.py`` (QPs of both problems): 1117 QPs with the
-session-9 stops (step 1e-3, stall 1e-5), 1021 with the stall threshold at 1e-4 (both
-problems), 899 with this stop as well; plan costs within 1e-5 of the longest polish at
-the 95th percentile (1.6e-4 at most), errors at tau unchanged."""
+targets of ``benchmarks/planner.py`` it saves a good share of the QPs at a negligible
+change of the plan costs, errors at tau unchanged (figures:
+``docs/planner.md#planner-benchmark``)."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -11,9 +11,10 @@ call. The pieces, one module each:
   command/joint chain from :mod:`studio.planning.chain`, racket errors at tau, limit
   rows), with the limit scaling of :mod:`studio.planning.scaling` and the casadi racket
   terms of :mod:`studio.planning.racket_terms`;
-- :mod:`studio.planning.sqp` (default ``"sqp-daqp"``, ~5 ms: Levenberg-Marquardt and the
+- :mod:`studio.planning.sqp` (default ``"sqp-daqp"``, the fast one: Levenberg-Marquardt and the
   Newton-SQP of :mod:`studio.planning.newton_sqp`) and :mod:`studio.planning.ipopt` (the
-  paper's formulation with IPOPT: reference and fallback): the solvers;
+  paper's formulation with IPOPT: reference and fallback): the solvers (timings:
+  ``docs/planner.md#planner-benchmark``);
 - :mod:`studio.planning.check`: the a-posteriori check at 1 kHz; failures give an
   invalid :class:`~studio.planning.strike.Plan` with a reason, never an exception.
 

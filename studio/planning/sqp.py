@@ -1,4 +1,4 @@
-"""The ``"sqp-daqp"`` solver of the strike planner (default, ~5 ms).
+"""The ``"sqp-daqp"`` solver of the strike planner (the default, and the fast one).
 
 1. Reduced problem in s (16 variables). Without active limits the minimum jerk for a
    given s is a quadratic in s (per joint a 2x2 block; jerks in closed form,
@@ -18,7 +18,7 @@
 The paper's tolerances and slacks are thus handled by aiming at the centre (errors
 ~1e-6 tolerances) and checking the tolerances a posteriori
 (:mod:`studio.planning.check`); the jerk is minimal for that centre, slightly above the
-optimum that uses the tolerances (measured: ~1-3 %).
+optimum that uses the tolerances. Timings and that gap: ``docs/planner.md#planner-benchmark``.
 """
 
 from __future__ import annotations

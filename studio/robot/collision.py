@@ -32,8 +32,9 @@ Two ways to find the first colliding sample, with the same result:
   test when closer than 0.1 mm. A vectorised pre-filter first bounds every pair's
   distance from its bounding volumes (below) once per window of 32 checked samples, minus the
   motion bound over the window; a pair is measured only inside windows where that lower
-  bound reaches the margin. About 100 coal distance queries for a ~1100-sample strike
-  (2000 without the pre-filter) instead of collision tests at every sample.
+  bound reaches the margin. A strike then needs a small fraction of the coal distance
+  queries conservative advancement alone would make, instead of collision tests at every
+  sample (figures: ``docs/planner.md#the-strike-planner``, ``docs/measured.md``).
 * ``exhaustive=True``: broad phase vectorised over all samples with numpy (batched
   forward kinematics of the joint frames): one bounding sphere per link, then per
   geometry its bounding sphere (or oriented box for boxes such as the gantry beam);
@@ -71,9 +72,9 @@ rounding with a wide margin (engineering choice)."""
 
 _HOT_WINDOW = 32
 """Samples per window of the bounding-volume pre-filter of conservative advancement.
-Measured on the example strikes (``benchmarks/collision.py``): windows of 8/16/32/64
-samples left 64/73/116/284 coal queries per strike; 32 was the fastest in total (the
-pre-filter's numpy cost grows with the number of windows)."""
+Shorter windows leave fewer coal queries but cost more numpy work in the pre-filter (its
+cost grows with the number of windows); 32 was the fastest in total on the example strikes
+of ``benchmarks/collision.py`` (figures: ``docs/planner.md#the-strike-planner``)."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -100,10 +100,10 @@ class EvaluationContext:
     def for_training(cls, *, ipopt_fallback: bool = False) -> EvaluationContext:
         """Context for optimization runs: the strike planner without its IPOPT fallback.
 
-        Measured on 300 uniformly drawn genomes (right toss): the fallback rescued none of
-        the 113 plans the SQP could not finish, and made the mean evaluation 3x slower
-        (106 ms against 33 ms; p95 379 against 71 ms). A target the SQP misses costs the
-        optimizer one -10 evaluation instead.
+        On uniformly drawn genomes the fallback rescued none of the plans the SQP could not
+        finish and made evaluations several times slower (figures:
+        ``docs/optimization.md#hebo-runs``). A target the SQP misses costs the optimizer one
+        -10 evaluation instead.
         """
         from studio.planning.options import PlannerOptions
 
@@ -135,7 +135,7 @@ class EvaluationContext:
         self.toss_model(side)
         _ = self.planner
         _ = self.collision
-        self.cup_hold(side)  # and the preparation it checks (~0.15 s)
+        self.cup_hold(side)  # and the preparation it checks (a noticeable cost: docs/measured.md)
 
     def toss_model(self, side: TossSide) -> TossModel:
         """The toss model of one side (default recordings), cached."""
@@ -153,7 +153,7 @@ class EvaluationContext:
     def planner_for(self, scale: LimitScale) -> Any:
         """The strike planner with the derivative limits expanded by ``scale`` (the paper's
         dynamic limit expansion): :attr:`planner` for the identity, else one planner per
-        scale, cached (building one takes ~50 ms)."""
+        scale, cached (building one takes time: ``docs/planner.md#dynamic-limit-expansion``)."""
         if scale.is_identity:
             return self.planner
         if scale not in self._planners:

@@ -132,8 +132,8 @@ def spinless_flight(
     """Positions [m] and velocities [m/s] (C, 3) at ``t1`` [s] of spinless flights from
     ``p``, ``v`` (C, 3) at ``t0`` [s] in still air: classic RK4 on the flight model's
     scalar derivative (``flight.scalar_derivative()``, a :class:`studio.physics.ball.FlightModel`;
-    the same equations as its ``acceleration``, on Python floats: a single state costs
-    ~0.2 ms instead of ~3 ms with numpy) with equal steps of at most ``step`` [s];
+    the same equations as its ``acceleration``, on Python floats: far cheaper than numpy
+    for a single state, ``docs/measured.md``) with equal steps of at most ``step`` [s];
     ``t1 < t0`` integrates backwards in time."""
     n = max(int(math.ceil(abs(t1 - t0) / step - 1e-9)), 1)
     h = (t1 - t0) / n

@@ -148,8 +148,8 @@ class _LiftFit:
         Offsets b_k (all samples) and post-release velocity deviations d_k with
         sum_k d_k = 0 (the arm's vibration has zero mean), same design for x, y, z: recording
         k's samples are fitted by b_k + d_k x, x = t - tc after the release (0 before).
-        Solved in O(samples), not by a dense least squares on the 2K-1 unknowns (O(K^3):
-        200 recordings took ~0.6 s per candidate, 81 candidates): per recording the
+        Solved in O(samples), not by a dense least squares on the 2K-1 unknowns (O(K^3), too
+        slow for a few hundred recordings: ``docs/measured.md``): per recording the
         unconstrained fit explains r0_k^2 / n_k + cr_k^2 / c2_k (mean, then the centred
         slope: cr_k = sum (x - xbar_k) r, c2_k = sum (x - xbar_k)^2), and the one constraint
         sum d_k = 0 adds (sum_k dhat_k)^2 / sum_k (1 / c2_k) with dhat_k = cr_k / c2_k; it

@@ -8,10 +8,8 @@ Work limits of a recordings file (issue 18: an 11 MB file of ~1,300 tosses kept
 :data:`MAX_SAMPLES` rows, :data:`MAX_TOSSES` tosses of at most
 :data:`MAX_SAMPLES_PER_TOSS` samples; times within :data:`MAX_ABS_TIME`, samples of a toss
 at least :data:`MIN_SAMPLE_STEP` apart and within :data:`MAX_TOSS_DURATION`, positions
-within :data:`MAX_ABS_POSITION`. A file within them is read and modelled in seconds
-(measured on the busy 2-core sandbox, session 14: 480 tosses of 414 samples, 198,336 rows in
-9.0 MB, 2.4 s to read and 7.0 s for the toss model; 40 tosses of 4,650 samples, 8.1 MB, 1.3 s
-and 2.7 s). The file of the report is refused at its 501st toss in ~2.5 s.
+within :data:`MAX_ABS_POSITION`. A file within them is read and modelled in seconds, and
+the file of the report is refused early (figures: ``docs/measured.md``).
 """
 
 from __future__ import annotations
