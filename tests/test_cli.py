@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 from pathlib import Path
@@ -216,6 +217,8 @@ def test_robust_export_stores_the_mean_toss_evaluation(capsys: pytest.CaptureFix
 @pytest.mark.parametrize("name, check", [
     ("largest_backspin", lambda net: net["topspin"] <= -300.0),
     ("fastest", lambda net: net["speed"] >= 7.0),
+    ("spinniest_within_efforts", lambda net: math.hypot(*net["w"]) > 550.0 and net["speed"] > 6.7),
+    ("largest_backspin_within_efforts", lambda net: net["topspin"] <= -300.0),
 ])  # fmt: skip
 def test_envelope_serves_hold_in_the_mujoco_rollout(capsys: pytest.CaptureFixture[str], name: str, check: object) -> None:
     """The envelope's claims (experiments/envelope/README.md) in the MuJoCo rollout: ball in
