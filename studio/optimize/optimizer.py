@@ -92,6 +92,7 @@ __all__ = [
     "optimize_serve",
     "RUN_SCHEMA",
     "read_run_meta",
+    "read_evaluations",
 ]
 
 RUN_SCHEMA = "serve-studio/optimization-run@1"
@@ -509,13 +510,27 @@ def _bounds_json(b: GenomeBounds) -> dict[str, Any]:
     }
 
 
-def _read_jsonl(path: Path) -> list[EvaluationRecord]:
-    """Records of ``path`` (:func:`studio.storage.jsonlog.read_jsonl`: a torn last line is cut off)."""
+def read_evaluations(path: Path) -> list[EvaluationRecord]:
+    """The records of a run's ``evaluations.jsonl`` (:func:`studio.storage.jsonlog.read_jsonl`:
+    a torn last line is cut off), in the order 0, 1, 2, ... of their indices (DataFileError
+    naming the first line that breaks it, and the valid prefix, otherwise)."""
     good = read_jsonl(path, EvaluationRecord.from_json)
-    for i, r in enumerate(good):
-        if r.index != i:
-            raise DataFileError(str(path), f"record {i} has index {r.index}: the file is not one run's log")
+    for k, r in enumerate(good):
+        if r.index != k:
+            raise DataFileError(str(path), _index_problem(good, k))
     return good
+
+
+def _index_problem(records: Sequence[EvaluationRecord], k: int) -> str:
+    """Why line ``k + 1`` of a run log breaks the 0, 1, 2, ... order of evaluation indices."""
+    r = records[k]
+    text = f"line {k + 1}: record {k} has index {r.index}"
+    if isinstance(r.index, int) and 0 <= r.index < k and records[r.index].genome == r.genome:
+        text += f" and repeats line {r.index + 1} (records appended twice, as a Ray retry of an earlier version did)"
+    return (
+        f"{text}: not one run's log, the file is unchanged. Lines 1-{k} are a valid log: keep only them "
+        f"(e.g. head -n {k}) to resume from there, or move the run folder away to run it anew"
+    )
 
 
 @dataclass(frozen=True)
@@ -745,12 +760,11 @@ def _final_candidates(
             break
     Xf = np.array([[r.params[g] for g in GENE_NAMES] for r in picked])
     fseeds = [int(np.random.SeedSequence([seed, 2, k]).generate_state(1)[0]) for k in range(len(picked))]
-    for r, (out, _sec) in zip(picked, pool.map(Xf, tosses=final_tosses, rng_seeds=fseeds)):
+    for r, x, (out, _sec) in zip(picked, Xf, pool.map(Xf, tosses=final_tosses, rng_seeds=fseeds)):
         rewards = out.rewards if out.rewards else (out.reward,)
-        params = ServeParams.from_vector([r.params[g] for g in GENE_NAMES])
         candidates.append(
             FinalCandidate(
-                params,
+                ServeParams.from_vector(x),
                 tuple(r.genome),
                 r.reward,
                 float(out.reward),
@@ -1040,7 +1054,7 @@ class OptimizationRun:
         run_json = self._run_json(self.bounds)
         if self.old is not None:
             self._adopt_old(self.old, run_json)
-            self.records = _read_jsonl(self.log_path)
+            self.records = read_evaluations(self.log_path)
         elif self.log_path.exists() and self.log_path.stat().st_size > 0:
             if self.resume:
                 raise InvalidInputError(f"cannot resume {self.log_path}: {self.run_dir / 'run.json'} is missing")

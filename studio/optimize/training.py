@@ -58,7 +58,7 @@ import numpy as np
 
 from studio.errors import DataFileError, InvalidInputError, StudioError
 from studio.serve.params import HandServe, LimitScale, TossSide
-from studio.storage.jsonlog import read_jsonl, write_line
+from studio.storage.jsonlog import write_line
 
 # Ray >= 2.45 notices a driver started by ``uv run`` (as ``./dev`` does) and starts its
 # workers with ``uv run`` too, packaging the working directory; here that failed ("worker
@@ -483,29 +483,15 @@ class _RayRun:
         return self.run_dir / "evaluations.jsonl"
 
 
-def _index_problem(records: Sequence[Any], k: int) -> str:
-    """Why line ``k + 1`` of a run log breaks the 0, 1, 2, ... order of evaluation indices."""
-    r = records[k]
-    text = f"line {k + 1}: record {k} has index {r.index}"
-    if isinstance(r.index, int) and 0 <= r.index < k and records[r.index].genome == r.genome:
-        text += f" and repeats line {r.index + 1} (a Ray retry of an earlier version appended records twice)"
-    return (
-        f"{text}: not one run's log, nothing was sent or changed. Lines 1-{k} are a valid log: keep only them "
-        f"(e.g. head -n {k}) to resume from there, or move the run folder away to train the run anew"
-    )
-
-
 def _held_records(run_dir: Path) -> list[Any]:
     """The records of ``run_dir``'s log, checked before any of it is sent to a task: indices
     0, 1, 2, ... and a ``run.json`` beside a non-empty log (DataFileError naming the file
-    and line otherwise; a torn last line is set aside as in :func:`studio.storage.jsonlog.read_jsonl`)."""
-    from studio.optimize.optimizer import EvaluationRecord
+    and line otherwise; :func:`studio.optimize.optimizer.read_evaluations`)."""
+    from studio.optimize.optimizer import read_evaluations
 
     log_path = run_dir / "evaluations.jsonl"
-    records = read_jsonl(log_path, EvaluationRecord.from_json)
+    records = read_evaluations(log_path)
     for k, rec in enumerate(records):
-        if rec.index != k:
-            raise DataFileError(log_path, _index_problem(records, k))
         if not isinstance(rec.genome, list):
             raise DataFileError(log_path, f"line {k + 1}: genome is not a list of numbers")
     if records and not (run_dir / "run.json").is_file():
