@@ -200,13 +200,19 @@ def _import_hebo() -> dict[str, Any]:
     )  # fmt: skip
 
 
-def _acq_objectives(acq: Any, X: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    """HEBO acquisition objectives (n, k) at the points X (n, d) of [0, 1]^d (no gradients)."""
+def _acq_values(acq: Any, X: npt.NDArray[np.float64]) -> npt.NDArray[np.float32]:
+    """HEBO acquisition values at the points X (n, d) of [0, 1]^d (no gradients): the
+    objectives, then the constraints (n, num_obj + num_constr)."""
     import torch
 
     with torch.no_grad():
         v = acq(torch.from_numpy(np.asarray(X, dtype=np.float32)), torch.zeros((len(X), 0), dtype=torch.long))
-    return v[:, : acq.num_obj].numpy().astype(float)
+    return v.numpy()
+
+
+def _acq_objectives(acq: Any, X: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """HEBO acquisition objectives (n, k) at the points X (n, d) of [0, 1]^d (no gradients)."""
+    return _acq_values(acq, X)[:, : acq.num_obj].astype(float)
 
 
 @functools.cache
@@ -222,15 +228,10 @@ def _vector_acq_problem_class() -> type:
             super().__init__(n_var=dim, n_obj=acq.num_obj, n_ieq_constr=acq.num_constr, xl=0.0, xu=1.0)
 
         def _evaluate(self, X: npt.NDArray[np.float64], out: dict[str, Any], *args: Any, **kwargs: Any) -> None:
-            import torch
-
-            with torch.no_grad():
-                v = self.acq(
-                    torch.from_numpy(np.asarray(X, dtype=np.float32)), torch.zeros((len(X), 0), dtype=torch.long)
-                )
-            out["F"] = v[:, : self.acq.num_obj].numpy()
+            v = _acq_values(self.acq, X)
+            out["F"] = v[:, : self.acq.num_obj]
             if self.acq.num_constr:
-                out["G"] = v[:, self.acq.num_obj :].numpy()
+                out["G"] = v[:, self.acq.num_obj :]
 
     return VectorAcqProblem
 
