@@ -225,17 +225,16 @@ def load_recordings_csv(path: str | Path) -> TossRecordings:
 def _read_text(path: Path) -> str:
     """The text of a recordings file: a regular file of at most :data:`MAX_CSV_BYTES`,
     UTF-8 (a byte-order mark is skipped); DataFileError otherwise."""
-    from studio.storage.jsonfile import read_file_bytes
+    from studio.storage.jsonfile import decode_text, read_file_bytes
 
     data = read_file_bytes(path, max_bytes=MAX_CSV_BYTES)
     try:
         return data.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        line = data.count(b"\n", 0, exc.start) + 1
-        raise DataFileError(
-            path,
-            f"line {line}: not UTF-8 text (byte {exc.start}: {data[exc.start : exc.start + 4]!r}); save it as UTF-8",
-        ) from None
+    except UnicodeDecodeError as exc:  # the project's message, for the line that holds the bad byte
+        first = data.rfind(b"\n", 0, exc.start) + 1
+        end = data.find(b"\n", exc.start)
+        decode_text(data[first : end if end >= 0 else len(data)], path, line=data.count(b"\n", 0, exc.start) + 1)
+        raise  # not reached: that line is not UTF-8 either
 
 
 def _header_columns(path: Path, lineno: int, line: str, header: list[str]) -> dict[str, int]:
