@@ -225,7 +225,6 @@ def _run_optimize(
     args: argparse.Namespace, run_dir: Path, seeds: list[HandServe], limit_scale: LimitScale | None
 ) -> OptimizationResult:
     """Run the HEBO optimization the options ask for, printing its progress on one line."""
-    import threading
     import time
 
     from studio.optimize.optimizer import OptimizeOptions, optimize_serve
@@ -250,9 +249,7 @@ def _run_optimize(
         overlap=False if args.sequential else None,
         limit_scale=limit_scale,
     )
-    return optimize_serve(
-        options, run_dir=run_dir, seeds=seeds, resume=args.resume, progress=progress, stop=threading.Event()
-    )
+    return optimize_serve(options, run_dir=run_dir, seeds=seeds, resume=args.resume, progress=progress)
 
 
 def _final_serve(args: argparse.Namespace, chosen: HandServe, run_dir: Path) -> HandServe:
