@@ -87,3 +87,21 @@ def test_spin_at_net_rewards_the_net_crossing_spin() -> None:
     assert spin.r_topback + spin.r_side == pytest.approx((250.0 + 400.0) / 1000.0)  # any direction, not clamped at 500
     with pytest.raises(InvalidInputError, match="spin_at"):
         RewardWeights(spin_at="apex")  # type: ignore[arg-type]
+
+
+def test_signed_spin_form_has_a_slope_through_topspin() -> None:
+    """``spin_form="signed"``: r_back rises as topspin falls (the paper's form is flat there),
+    stays in [0, g_back] and keeps every legal serve above every illegal one."""
+    state = dict(p2=[1.0, 0.0, 0.0], v2=[3.0, 0.0, 1.0], max_height=0.2)
+    signed, paper = task_weights("backspin_signed"), task_weights("backspin")
+    spins = (600.0, 300.0, 150.0, 0.0, -100.0, -300.0, -800.0)
+    r_signed = [reward(**state, w2=[0.0, s, 0.0], weights=signed).r_topback for s in spins]
+    r_paper = [reward(**state, w2=[0.0, s, 0.0], weights=paper).r_topback for s in spins]
+    assert r_paper[:4] == [0.0] * 4  # the paper's one-sided term: no slope on topspin serves
+    assert np.all(np.diff(r_signed) > 0.0)
+    assert r_signed[0] == 0.0 and r_signed[-1] == pytest.approx(1.0)  # clamped at +-w_bar = 500 rad/s
+    assert r_signed[3] == pytest.approx(0.5) and r_signed[5] == pytest.approx(0.8)  # (1 - w_tb/500) / 2
+    top = RewardWeights(g_top=2.0, spin_form="signed")
+    assert reward(**state, w2=[0.0, 250.0, 0.0], weights=top).r_topback == pytest.approx(2.0 * 0.75)
+    with pytest.raises(InvalidInputError, match="spin_form"):
+        RewardWeights(spin_form="linear")  # type: ignore[arg-type]

@@ -71,9 +71,18 @@ class RewardWeights:
     v_z_ref: float = 5.0
     """Normalization of the vertical speed [m/s]."""
     g_top: float = 0.0
-    """Gain of r_top = g_top * max(0, w_tb_hat)."""
+    """Gain of r_top = g_top * max(0, w_tb_hat) (``spin_form="paper"``)."""
     g_back: float = 0.0
-    """Gain of r_back = g_back * max(0, -w_tb_hat)."""
+    """Gain of r_back = g_back * max(0, -w_tb_hat) (``spin_form="paper"``)."""
+    spin_form: Literal["paper", "signed"] = "paper"
+    """Shape of r_top and r_back. ``"paper"``: the paper's one-sided max(0, .) terms.
+    ``"signed"`` (beyond the paper, which lets the spin terms "reward signed or unsigned
+    spin components directly"): r_top = g_top (1 + w_tb_hat) / 2 and
+    r_back = g_back (1 - w_tb_hat) / 2, the signed component mapped onto [0, g] so that
+    a legal serve still scores >= 0 and above every illegal one. With the paper's form
+    a backspin run has no slope on the plateau of topspin serves (every serve flown
+    through two table bounces leaves with topspin unless the racket gave it a lot of
+    backspin): see ``docs/optimization.md#table-ii``."""
     g_side: float = 0.0
     """Gain of r_side = g_side * phi(w_ss_hat)."""
     side_direction: Literal[-1, 1] | None = None
@@ -117,6 +126,8 @@ class RewardWeights:
         for name in ("g_top", "g_back", "g_side", "g_pos", "g_height"):
             if getattr(self, name) < 0:
                 raise InvalidInputError(f"RewardWeights.{name} must be >= 0 (the paper's gains are non-negative)")
+        if self.spin_form not in ("paper", "signed"):
+            raise InvalidInputError(f"RewardWeights.spin_form must be 'paper' or 'signed', got {self.spin_form!r}")
         if self.spin_at not in ("second_bounce", "net"):
             raise InvalidInputError(f"RewardWeights.spin_at must be 'second_bounce' or 'net', got {self.spin_at!r}")
 
@@ -198,11 +209,18 @@ def reward(
     tb, ss, _ = spin_scalars(v_spin, w_spin)
     tb_hat = float(np.clip(tb, -wt.spin_max, wt.spin_max)) / wt.spin_max
     ss_hat = float(np.clip(ss, -wt.spin_max, wt.spin_max)) / wt.spin_max
-    r_topback = wt.g_top * max(0.0, tb_hat) + wt.g_back * max(0.0, -tb_hat)
+    r_topback = _topback(wt, tb_hat)
     phi = abs(ss_hat) if wt.side_direction is None else max(0.0, wt.side_direction * ss_hat)
     r_side = wt.g_side * phi
     r_height = wt.g_height * min(1.0, wt.h_ref / max(max_height, 1e-6))
     return RewardTerms(r_pos=r_pos, r_vel=r_vel, r_topback=r_topback, r_side=r_side, r_height=r_height)
+
+
+def _topback(wt: RewardWeights, tb_hat: float) -> float:
+    """r_top + r_back for the normalized top/back spin ``tb_hat`` in [-1, 1]."""
+    if wt.spin_form == "signed":
+        return wt.g_top * (1.0 + tb_hat) / 2.0 + wt.g_back * (1.0 - tb_hat) / 2.0
+    return wt.g_top * max(0.0, tb_hat) + wt.g_back * max(0.0, -tb_hat)
 
 
 _LOW = 0.5
@@ -215,13 +233,15 @@ TASKS: dict[str, RewardWeights] = {
     "topspin_velocity": RewardWeights(g_top=1.0, g_vel_xy=1.0, g_height=_LOW),
     "backspin": RewardWeights(g_back=1.0, g_height=_LOW),
     "sidespin": RewardWeights(g_side=1.0, g_height=_LOW),
+    "backspin_signed": RewardWeights(g_back=1.0, g_height=_LOW, spin_form="signed"),
     "backspin_net": RewardWeights(g_back=1.0, g_height=_LOW, spin_at="net"),
     "spin_net": RewardWeights(g_top=1.0, g_back=1.0, g_side=1.0, spin_max=1000.0, g_height=_LOW, spin_at="net"),
 }
 """Task presets of the paper's experiment (Table II): aiming at a table corner (15 cm
 inside the receiver's left corner), topspin & horizontal velocity, backspin, sidespin in
 either direction; each with the "low" height weighting the paper adds to all runs. Beyond
-the paper: ``backspin_net`` rewards backspin as the ball crosses the net
+the paper: ``backspin_signed`` rewards the signed top/back spin at the second bounce
+(:attr:`RewardWeights.spin_form`: a slope from topspin towards backspin); ``backspin_net`` rewards backspin as the ball crosses the net
 (:attr:`RewardWeights.spin_at`); ``spin_net`` rewards the spin a receiver reads at the
 net in any direction, |w_tb| + |w_ss| up to 1000 rad/s each (the serve capability
 envelope, the paper's Fig. 3b: how much spin the robot can put on a legal serve)."""
