@@ -133,7 +133,7 @@ def test_optimize_from_seeds_runs_and_loads_the_best(app: StudioApp) -> None:
 
 
 def test_export_beyond_the_effort_limits_needs_the_checkbox(app: StudioApp) -> None:
-    """backspin_left (limits x1.5) exceeds gantry_x: Checks says so, Export refuses; with
+    """backspin_heavy_right (limits x2) exceeds gantry_x: Checks says so, Export refuses; with
     "Export beyond effort limits" it exports and the entry records the raised limit."""
     from studio.library.store import ServeLibrary
     from studio.serve.params import load_serve
@@ -141,7 +141,7 @@ def test_export_beyond_the_effort_limits_needs_the_checkbox(app: StudioApp) -> N
     before = len(ServeLibrary(app.library_dir).entries()) if (app.library_dir / "index.json").exists() else 0
     assert app.worker.wait_idle(120) and app.last is not None
     previous = app.last.serve
-    app.load(load_serve(Path(__file__).resolve().parent.parent / "examples" / "serves" / "backspin_left.json"))
+    app.load(load_serve(Path(__file__).resolve().parent.parent / "examples" / "serves" / "backspin_heavy_right.json"))
     assert app.worker.wait_idle(120) and app.last is not None and app.last.serve.name.startswith("backspin")
     assert "EXCEED" in app.checks_md.content and "gantry_x" in app.checks_md.content
     app.files.export()

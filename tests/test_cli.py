@@ -257,10 +257,10 @@ def test_calibrate_prints_one_table_of_every_model(capsys: pytest.CaptureFixture
 
 
 def test_export_beyond_the_effort_limits_is_refused_unless_raised(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
-    """backspin_left (limits x1.5) needs more gantry_x force than the robot's limit: the
+    """backspin_heavy_right (limits x2) needs more gantry_x force than the robot's limit: the
     report is printed, the export refused with the flag that would raise the limit; with
     the flag the entry is written and records the raised limit."""
-    path = str(EXAMPLES / "backspin_left.json")
+    path = str(EXAMPLES / "backspin_heavy_right.json")
     assert main(["evaluate", path, "--export", str(tmp_path / "lib")]) == 1
     text = capsys.readouterr().out
     assert "Joint efforts EXCEED the limits" in text and "not exported" in text and "--effort-limit gantry_x=" in text

@@ -102,8 +102,8 @@ def test_parse_limits_reads_joint_value_pairs() -> None:
 
 @pytest.fixture(scope="module")
 def beyond():  # type: ignore[no-untyped-def]
-    """backspin_left (acceleration and jerk limits x1.5): its gantry_x force beyond the limit."""
-    serve = load_serve(SERVES / "backspin_left.json")
+    """backspin_heavy_right (acceleration and jerk limits x2): its gantry_x force beyond the limit."""
+    serve = load_serve(SERVES / "backspin_heavy_right.json")
     return evaluate_serve(serve, EvaluationContext.default(), task=serve.task)
 
 
@@ -136,7 +136,7 @@ def test_export_with_a_raised_limit_records_it_and_pinocchio_agrees(tmp_path: Pa
 
 def test_every_example_exports_within_the_limits_or_is_refused(tmp_path: Path) -> None:
     """The done-when of the hardware issue: each example's export either has every peak
-    within the TOML's limits or is refused; the refused ones are the x1.5 / x2 expansions."""
+    within the TOML's limits or is refused; the refused one is the x2 expansion."""
     context = EvaluationContext.default()
     limits = np.array([_toml_joints()[n]["effort"] for n in NAMES])
     refused = []
@@ -152,5 +152,5 @@ def test_every_example_exports_within_the_limits_or_is_refused(tmp_path: Path) -
             assert not rep.within and not (tmp_path / path.stem / INDEX_NAME).exists()
         else:
             assert rep.within and np.all(np.array(entry.data["robot"]["efforts"]["peak"]) <= limits)
-    assert set(refused) <= {"backspin_left", "backspin_heavy_right"} and "topspin_right" not in refused
+    assert refused == ["backspin_heavy_right"]
     assert all(not load_serve(SERVES / f"{n}.json").limit_scale.is_identity for n in refused)
