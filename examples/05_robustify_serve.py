@@ -41,12 +41,11 @@ def main() -> None:
         if done >= args.evaluations // 2:
             stop.set()  # as a user pressing Stop (or Ctrl+C on the CLI)
 
-    first = studio.robustify_serve(
-        serve, context=context, evaluations=args.evaluations, run_dir=args.run_dir, progress=progress, stop=stop
-    )
+    options = studio.RobustifyOptions(evaluations=args.evaluations)  # keep_spin 0.9, sigma 0.03, seed 0: defaults
+    first = studio.robustify_serve(serve, options, context=context, run_dir=args.run_dir, progress=progress, stop=stop)
     print(f"stopped after {first.evaluations} candidates; resuming")
     res = studio.robustify_serve(
-        serve, context=context, evaluations=args.evaluations, run_dir=args.run_dir, resume=True,
+        serve, options, context=context, run_dir=args.run_dir, resume=True,
         progress=lambda done, total, best: print(f"  {done:4d} / {total} candidates, best legal on {best.legal}/{best.tosses}"),
     )  # fmt: skip
     print(res.summary())

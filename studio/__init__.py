@@ -76,6 +76,7 @@ _API: dict[str, str] = {
     # optimization
     "OptimizeOptions": "studio.optimize.optimizer",
     "optimize_serve": "studio.optimize.optimizer",
+    "RobustifyOptions": "studio.optimize.robust",
     "robustify_serve": "studio.optimize.robust",
     "TrainConfig": "studio.optimize.training",
     "train_serves": "studio.optimize.training",
@@ -104,6 +105,7 @@ __all__ = [
     "RacketModel",
     "Robot",
     "RobustScore",
+    "RobustifyOptions",
     "SWITCH_DELAY",
     "ServeLibrary",
     "ServeParams",
@@ -140,7 +142,7 @@ if TYPE_CHECKING:
     from studio.library.selection import select_next
     from studio.library.store import ServeLibrary
     from studio.optimize.optimizer import OptimizationResult, OptimizeOptions, optimize_serve
-    from studio.optimize.robust import RobustScore, robustify_serve
+    from studio.optimize.robust import RobustifyOptions, RobustScore, robustify_serve
     from studio.optimize.training import TrainConfig, train_serves
     from studio.physics.ball import (
         DEFAULT_FLIGHT,

@@ -325,7 +325,7 @@ def _cmd_robustify(args: argparse.Namespace) -> int:
     import time
     from pathlib import Path
 
-    from studio.optimize.robust import RobustScore, robustify_serve
+    from studio.optimize.robust import RobustifyOptions, RobustScore, robustify_serve
     from studio.serve.params import load_serve, save_serve
 
     serve = load_serve(args.serve)
@@ -339,14 +339,13 @@ def _cmd_robustify(args: argparse.Namespace) -> int:
             flush=True,
         )
 
+    options = RobustifyOptions(
+        task=args.task, keep_spin=args.keep_spin, sigma=args.sigma, evaluations=args.evaluations, seed=args.seed
+    )
     try:
         res = robustify_serve(
             serve,
-            task=args.task,
-            keep_spin=args.keep_spin,
-            sigma=args.sigma,
-            evaluations=args.evaluations,
-            seed=args.seed,
+            options,
             run_dir=run_dir,
             resume=args.resume,
             progress=progress,

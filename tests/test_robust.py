@@ -5,13 +5,22 @@ from __future__ import annotations
 import json
 import math
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from studio.errors import DataFileError, InvalidInputError
-from studio.optimize.robust import ILLEGAL_ON_MEAN, LOG_NAME, RobustScore, objective, robustify_serve, spin_keep
+from studio.optimize.robust import (
+    ILLEGAL_ON_MEAN,
+    LOG_NAME,
+    RobustifyOptions,
+    RobustScore,
+    objective,
+    robustify_serve,
+    spin_keep,
+)
 from studio.serve.params import GenomeBounds, HandServe, LimitScale, ServeParams, load_serve
 
 BOUNDS = GenomeBounds(tau=(0.65, 1.0))
@@ -59,7 +68,7 @@ def test_spin_keep_and_objective() -> None:
 
 def test_finds_a_more_robust_serve_that_keeps_the_spin(tmp_path: Path) -> None:
     fake = Fake()
-    res = robustify_serve(START, bounds=BOUNDS, evaluations=240, score=fake, run_dir=tmp_path)
+    res = robustify_serve(START, RobustifyOptions(bounds=BOUNDS, evaluations=240), score=fake, run_dir=tmp_path)
     assert fake.calls == 240 + 1 and res.evaluations == 240 and not res.stopped
     assert res.improved and res.best.legal > res.start.legal and res.best.legal >= 15
     assert res.keep.deficit(res.best) == 0.0  # the spin floor holds for the chosen serve
@@ -79,40 +88,41 @@ def test_never_worse_than_the_start() -> None:
             top = float(serve.params.normalize(BOUNDS)[0])
             return RobustScore(True, 8 if self.calls == 1 else 3, 20, 0.0, -100.0 if self.calls == 1 else -100.0 + top, 0.0)
 
-    res = robustify_serve(START, bounds=BOUNDS, evaluations=24, score=Flat())
+    res = robustify_serve(START, RobustifyOptions(bounds=BOUNDS, evaluations=24), score=Flat())
     assert not res.improved and res.serve == START and res.best == res.start
 
 
 def test_stop_then_resume_equals_the_uninterrupted_search(tmp_path: Path) -> None:
-    whole = robustify_serve(START, bounds=BOUNDS, evaluations=96, score=Fake(), run_dir=tmp_path / "whole")
+    opts = RobustifyOptions(bounds=BOUNDS, evaluations=96)
+    whole = robustify_serve(START, opts, score=Fake(), run_dir=tmp_path / "whole")
     stop = threading.Event()
 
     def progress(done: int, total: int, best: RobustScore) -> None:
         if done >= 36:
             stop.set()
 
-    part = robustify_serve(START, bounds=BOUNDS, evaluations=96, score=Fake(), run_dir=tmp_path / "part", progress=progress, stop=stop)
+    part = robustify_serve(START, opts, score=Fake(), run_dir=tmp_path / "part", progress=progress, stop=stop)
     assert part.stopped and part.evaluations == 36
     # a torn last line (killed while writing) is cut off and that candidate scored again
     log = tmp_path / "part" / LOG_NAME
     log.write_bytes(log.read_bytes() + b'{"index": 36, "genome": [0.5')
     fake = Fake()
-    resumed = robustify_serve(START, bounds=BOUNDS, evaluations=96, score=fake, run_dir=tmp_path / "part", resume=True)
+    resumed = robustify_serve(START, opts, score=fake, run_dir=tmp_path / "part", resume=True)
     assert fake.calls == 1 + (96 - 36)  # the start, then only what was not logged
     assert resumed.serve == whole.serve and resumed.best == whole.best
     assert (tmp_path / "part" / LOG_NAME).read_text() == (tmp_path / "whole" / LOG_NAME).read_text()
     # another search's settings or log are refused by field / line
     with pytest.raises(DataFileError, match="field 'sigma'"):
-        robustify_serve(START, bounds=BOUNDS, evaluations=96, score=Fake(), run_dir=tmp_path / "part", resume=True, sigma=0.05)
+        robustify_serve(START, replace(opts, sigma=0.05), score=Fake(), run_dir=tmp_path / "part", resume=True)
     lines = log.read_text().splitlines()
     doc = json.loads(lines[3])
     doc["genome"][0] += 0.01
     lines[3] = json.dumps(doc)
     log.write_text("\n".join(lines) + "\n")
     with pytest.raises(DataFileError, match="line 4: the logged candidate differs"):
-        robustify_serve(START, bounds=BOUNDS, evaluations=96, score=Fake(), run_dir=tmp_path / "part", resume=True)
+        robustify_serve(START, opts, score=Fake(), run_dir=tmp_path / "part", resume=True)
     with pytest.raises(InvalidInputError, match="already holds a search"):
-        robustify_serve(START, bounds=BOUNDS, evaluations=96, score=Fake(), run_dir=tmp_path / "part")
+        robustify_serve(START, opts, score=Fake(), run_dir=tmp_path / "part")
 
 
 @pytest.mark.parametrize(
@@ -120,19 +130,25 @@ def test_stop_then_resume_equals_the_uninterrupted_search(tmp_path: Path) -> Non
     [
         ({"keep_spin": 1.5}, "keep_spin"), ({"sigma": 0.0}, "sigma"), ({"sigma": math.nan}, "sigma"), ({"evaluations": 0}, "evaluations"),
         ({"evaluations": True}, "evaluations"), ({"population": 2}, "population"), ({"population": 6.5}, "population"), ({"seed": -1}, "seed"),
-        ({"seed": 2**40}, "seed"), ({"resume": True}, "run_dir"),
+        ({"seed": 2**40}, "seed"),
     ],
 )
 def test_bad_settings_are_rejected_by_name(kw: dict, name: str) -> None:
-    with pytest.raises(InvalidInputError, match=name):
-        robustify_serve(START, bounds=BOUNDS, score=Fake(), **kw)
+    # refused when the options are built, before any search starts
+    with pytest.raises(InvalidInputError, match=f"robustify: {name} out of range"):
+        RobustifyOptions(bounds=BOUNDS, **kw)
+
+
+def test_resume_without_run_dir_is_rejected() -> None:
+    with pytest.raises(InvalidInputError, match="run_dir"):
+        robustify_serve(START, RobustifyOptions(bounds=BOUNDS), score=Fake(), resume=True)
 
 
 def test_real_search_on_an_example_keeps_its_spin_and_legality() -> None:
     from studio.serve.evaluate import EvaluationContext
 
     serve = load_serve(EXAMPLES / "backspin_right.json")
-    res = robustify_serve(serve, context=EvaluationContext.default(), evaluations=24, sigma=0.05)
+    res = robustify_serve(serve, RobustifyOptions(evaluations=24, sigma=0.05), context=EvaluationContext.default())
     assert res.start.mean_legal and res.start.tosses == 20
     assert res.best.legal >= res.start.legal and res.best.mean_legal
     assert res.keep.components[0][:2] == ("topspin", -1.0)  # a backspin serve stays one
@@ -141,7 +157,7 @@ def test_real_search_on_an_example_keeps_its_spin_and_legality() -> None:
 
 def test_unknown_task_fails_before_anything_is_loaded(tmp_path: Path) -> None:
     with pytest.raises(InvalidInputError, match="task"):
-        robustify_serve(START, task="no-such-task", bounds=BOUNDS, run_dir=tmp_path / "run")
+        robustify_serve(START, RobustifyOptions(task="no-such-task", bounds=BOUNDS), run_dir=tmp_path / "run")
     assert not (tmp_path / "run").exists()
 
 
@@ -149,10 +165,10 @@ def test_numpy_global_random_state_is_left_alone() -> None:
     np.random.seed(123)
     expected = np.random.rand(3)
     np.random.seed(123)
-    a = robustify_serve(START, bounds=BOUNDS, evaluations=36, score=Fake())
+    a = robustify_serve(START, RobustifyOptions(bounds=BOUNDS, evaluations=36), score=Fake())
     np.testing.assert_array_equal(np.random.rand(3), expected)
     np.random.seed(999)  # and the search does not depend on it
-    b = robustify_serve(START, bounds=BOUNDS, evaluations=36, score=Fake())
+    b = robustify_serve(START, RobustifyOptions(bounds=BOUNDS, evaluations=36), score=Fake())
     assert a.serve == b.serve and a.best == b.best
 
 
@@ -164,7 +180,7 @@ def test_spin_turned_round_costs_less_than_illegal_on_the_mean_toss() -> None:
 
 
 def test_resume_under_other_models_is_refused(tmp_path: Path) -> None:
-    robustify_serve(START, bounds=BOUNDS, evaluations=12, score=Fake(), run_dir=tmp_path)
+    robustify_serve(START, RobustifyOptions(bounds=BOUNDS, evaluations=12), score=Fake(), run_dir=tmp_path)
 
     class Other(Fake):  # e.g. other toss recordings: the start scores differently
         def __call__(self, serve: HandServe) -> RobustScore:
@@ -172,4 +188,4 @@ def test_resume_under_other_models_is_refused(tmp_path: Path) -> None:
             return RobustScore(sc.mean_legal, max(0, sc.legal - 1), sc.tosses, sc.mean_reward, sc.net_topspin, sc.net_sidespin)
 
     with pytest.raises(DataFileError, match="field 'start'"):
-        robustify_serve(START, bounds=BOUNDS, evaluations=24, score=Other(), run_dir=tmp_path, resume=True)
+        robustify_serve(START, RobustifyOptions(bounds=BOUNDS, evaluations=24), score=Other(), run_dir=tmp_path, resume=True)

@@ -2,12 +2,12 @@
 
 A serve designed on the mean toss path, by hand or by HEBO, often stays legal on only a
 few of the recorded tosses: the ball it meets is a centimetre off. The paper makes serves
-robust by training on sampled tosses (``optimize_serve(tosses=K)``), a global search that
+robust by training on sampled tosses (``OptimizeOptions(tosses=K)``), a global search that
 may leave the kind of serve it started from (a run from a backspin example returned only
 topspin serves among its best legal candidates: ``docs/evaluation.md#making-a-serve-robust``).
-:func:`robustify_serve` searches *around* the serve instead:
-CMA-ES (``cma``) on the normalized genome (:class:`studio.serve.params.GenomeBounds`), started at
-the serve with step ``sigma``, minimizing
+:func:`robustify_serve` searches *around* the serve instead (settings:
+:class:`RobustifyOptions`): CMA-ES (``cma``) on the normalized genome
+(:class:`studio.serve.params.GenomeBounds`), started at the serve with step ``sigma``, minimizing
 
     -(legal count over the recorded tosses + 0.1 x mean reward over them)
     + spin deficit / SPIN_PER_TOSS
@@ -227,6 +227,38 @@ def _check_settings(keep_spin: float, sigma: float, evaluations: int, population
             )
 
 
+@dataclass(frozen=True, kw_only=True)
+class RobustifyOptions:
+    """What :func:`robustify_serve` searches for and how: the search's settings.
+
+    The runtime hooks (progress, stop, an injected score) and places (context, run folder,
+    resume) are arguments of :func:`robustify_serve`, not options. Checked on construction:
+    a setting out of range raises :class:`~studio.errors.InvalidInputError` naming it.
+    """
+
+    task: str | None = None
+    """Reward task of the mean-reward tie-break; ``None``: the serve's, else
+    topspin_velocity."""
+    keep_spin: float = 0.9
+    """Fraction in [0, 1] of each of the starting serve's net spin components to keep."""
+    sigma: float = 0.03
+    """CMA-ES initial step on the normalized genome, in (0, 0.5]."""
+    evaluations: int = 600
+    """Candidates to score in all (>= 1), rounded up to whole generations of
+    ``population`` (a resumed search counts the logged ones; logged candidates beyond the
+    budget are not used)."""
+    population: int = 12
+    """CMA-ES population (>= 4)."""
+    seed: int = 0
+    """CMA-ES seed, 0 <= seed < 2**31 - 1."""
+    bounds: GenomeBounds | None = None
+    """Genome bounds; ``None``: :func:`studio.optimize.optimizer.bounds_for_toss` of the
+    serve's side."""
+
+    def __post_init__(self) -> None:
+        _check_settings(self.keep_spin, self.sigma, self.evaluations, self.population, self.seed)
+
+
 def _model_scorer(context: Any, task: str) -> tuple[ScoreFn, Any]:
     """:func:`robust_score` on ``context`` (default: the shipped models) and that context;
     an unknown task fails first."""
@@ -372,54 +404,43 @@ class _Search:
 
 def robustify_serve(
     serve: HandServe,
+    options: RobustifyOptions | None = None,
     *,
     context: Any = None,
-    task: str | None = None,
-    keep_spin: float = 0.9,
-    sigma: float = 0.03,
-    evaluations: int = 600,
-    population: int = 12,
-    seed: int = 0,
     run_dir: str | Path | None = None,
     resume: bool = False,
-    bounds: GenomeBounds | None = None,
     progress: Callable[[int, int, RobustScore], None] | None = None,
     stop: threading.Event | None = None,
     score: ScoreFn | None = None,
 ) -> RobustifyResult:
-    """Search around ``serve`` for one that is legal on more recorded tosses (module docstring).
+    """Search around ``serve`` for one that is legal on more recorded tosses (module docstring);
+    :class:`RobustifyOptions` holds the search's settings.
 
     Args:
         serve: the starting serve (its side's tosses are used; its limit scale is kept).
+        options: the search's settings (task, spin kept, CMA-ES step, budget, population,
+            seed, bounds); ``None``: the defaults.
         context: :class:`studio.serve.evaluate.EvaluationContext` (default: the shipped models).
-        task: reward task of the mean-reward tie-break (default: the serve's, else
-            topspin_velocity).
-        keep_spin: fraction in [0, 1] of the starting serve's dominant net spin to keep.
-        sigma: CMA-ES initial step on the normalized genome (0, 0.5].
-        evaluations: candidates to score in all, rounded up to whole generations of
-            ``population`` (a resumed search counts the logged ones; logged candidates
-            beyond the budget are not used).
-        population: CMA-ES population (>= 4).
-        seed: CMA-ES seed.
         run_dir: folder for ``robustify.json`` and ``robustify.jsonl`` (optional).
         resume: continue the search logged in ``run_dir`` (same settings required).
-        bounds: genome bounds (default: :func:`studio.optimize.optimizer.bounds_for_toss` of the side).
         progress: called after each generation with (candidates done, budget in whole
             generations, best score so far).
         stop: when set, the search ends after the current generation.
         score: replaces :func:`robust_score` (tests).
 
     Raises:
-        InvalidInputError: a setting out of range (named); DataFileError: a log that does
+        InvalidInputError: resume without ``run_dir``, an unknown task (settings out of
+            range are refused by :class:`RobustifyOptions`); DataFileError: a log that does
             not belong to this search.
     """
-    _check_settings(keep_spin, sigma, evaluations, population, seed)
+    opts = options if options is not None else RobustifyOptions()
+    keep_spin, sigma, population, seed = opts.keep_spin, opts.sigma, opts.population, opts.seed
     if resume and run_dir is None:
         raise InvalidInputError("robustify: resume needs run_dir")
-    task = task or serve.task or "topspin_velocity"
+    task = opts.task or serve.task or "topspin_velocity"
     if score is None:
         score, context = _model_scorer(context, task)
-    bounds = bounds if bounds is not None else _default_bounds(serve, context)
+    bounds = opts.bounds if opts.bounds is not None else _default_bounds(serve, context)
     start_score = score(serve)
     keep = spin_keep(start_score, keep_spin)
     meta = {
@@ -431,10 +452,10 @@ def robustify_serve(
     log, log_path = _open_run(run_dir, meta, resume) if run_dir is not None else ([], None)
     z0 = np.clip(serve.params.normalize(bounds), 0.0, 1.0)  # a start outside the bounds: the nearest genome
     es = _new_strategy(z0, sigma, population, seed)
-    budget = -(-evaluations // population) * population  # whole generations
+    budget = -(-opts.evaluations // population) * population  # whole generations
     search = _Search(serve, bounds, score, keep, log, log_path, serve, start_score, objective(start_score, keep))
     stopped = False
-    while search.done < evaluations:
+    while search.done < opts.evaluations:
         if stop is not None and stop.is_set():
             stopped = True
             break
@@ -480,5 +501,9 @@ def robustify_chosen(
     (``optimize``/``train --robustify``)."""
     folder = Path(run_dir) / RUN_SUBDIR
     return robustify_serve(
-        serve, context=context, task=task, evaluations=evaluations, run_dir=folder, resume=(folder / META_NAME).exists()
+        serve,
+        RobustifyOptions(task=task, evaluations=evaluations),
+        context=context,
+        run_dir=folder,
+        resume=(folder / META_NAME).exists(),
     )

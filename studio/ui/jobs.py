@@ -320,7 +320,7 @@ class JobRunner:
         ).start()
 
     def _run_robustify(self, controls: Controls, evaluations: int) -> None:
-        from studio.optimize.robust import RobustScore, robustify_serve
+        from studio.optimize.robust import RobustifyOptions, RobustScore, robustify_serve
 
         start = time.perf_counter()
 
@@ -334,9 +334,8 @@ class JobRunner:
                 self._robust_context = EvaluationContext.default()
             res = robustify_serve(
                 controls.serve,
+                RobustifyOptions(task=controls.task, evaluations=evaluations),
                 context=self._robust_context,
-                task=controls.task,
-                evaluations=evaluations,
                 progress=progress,
                 stop=self.stop_event,
             )
