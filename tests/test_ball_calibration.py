@@ -134,7 +134,7 @@ def test_serve_contacts_loader_names_file_line_and_column(tmp_path: Path) -> Non
     with pytest.raises(DataFileError, match="missing column"):
         BC.load_serve_contacts_csv(p)
     p.write_bytes(b"\xff\xfe\x00")
-    with pytest.raises(DataFileError, match="UTF-8"):
+    with pytest.raises(DataFileError, match=r"not UTF-8 text \(byte 0xff at offset 0\); save the file as UTF-8"):
         BC.load_serve_contacts_csv(p)
     with pytest.raises(DataFileError, match="cannot read"):
         BC.load_serve_contacts_csv(tmp_path / "missing.csv")
@@ -155,3 +155,14 @@ def test_noise_floor_needs_true_repeats() -> None:
                           rep.racket_angle, rep.traj_dir, "synthetic")  # fmt: skip
     nv, nw = BC.measurement_noise(noisy, model)  # type: ignore[misc]
     assert nv == pytest.approx(0.1 * np.sqrt(3), rel=0.1) and nw == pytest.approx(5.0 * np.sqrt(3), rel=0.1)
+
+
+def test_racket_bounce_csv_that_is_not_utf8_is_a_data_file_error(tmp_path: Path) -> None:
+    """A Latin-1 byte in a racket-bounce CSV: the project's message with the file, not a
+    UnicodeDecodeError (the reader caught only OSError)."""
+    header = ",".join(BC.REQUIRED_COLUMNS)
+    p = tmp_path / "bounces.csv"
+    p.write_bytes(header.encode() + b"\n" + b"caf\xe9," * (len(BC.REQUIRED_COLUMNS) - 1) + b"x\n")
+    with pytest.raises(DataFileError, match=r"not UTF-8 text \(byte 0xe9 at offset \d+\)") as info:
+        BC.load_bounce_csv(p)
+    assert info.value.path == str(p)

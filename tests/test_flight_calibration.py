@@ -111,6 +111,14 @@ def test_missing_file_column_and_empty_file(tmp_path: Path) -> None:
         F.load_match_events(tmp_path / "empty.csv")
 
 
+def test_match_file_that_is_not_utf8_names_the_byte(tmp_path: Path) -> None:
+    path = tmp_path / "latin1.csv"
+    path.write_bytes(HEADER.encode() + b"P\xe9,/g/r/event1,shot_p1,1.0,[1 2 3],[1 2 3],[0 0 0]\n")
+    with pytest.raises(DataFileError, match=r"not UTF-8 text \(byte 0xe9 at offset \d+\); save the file as UTF-8") as info:
+        F.load_match_events(path)
+    assert info.value.path == str(path)
+
+
 def test_default_path_is_next_to_the_repository() -> None:
     repo = Path(F.__file__).resolve().parents[2]
     assert F.DEFAULT_MATCH_CSV == repo.parent / "shared/data/ace_match/match_data_dev.csv"

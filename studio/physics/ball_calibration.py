@@ -45,6 +45,7 @@ from studio.physics.ball import (
     _local_frame,
     simulate,
 )
+from studio.storage.jsonfile import not_utf8
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -164,6 +165,8 @@ def load_bounce_csv(path: str | os.PathLike[str]) -> BounceRows:
                     raise DataFileError(
                         path, f"line {line_no}, column 'v_out_z': ball must leave the face (> 0), got {vz_out}"
                     )
+    except UnicodeDecodeError as exc:
+        raise not_utf8(path, exc) from None
     except OSError as exc:
         raise DataFileError(path, f"cannot read: {exc}") from exc
     if not values:
@@ -230,7 +233,7 @@ def _read_numeric_csv(path: Path, columns: Sequence[str]) -> tuple[FloatArray, l
                 raw.append(row)
                 lines.append(line_no)
     except UnicodeDecodeError as exc:
-        raise DataFileError(path, f"not UTF-8 text: {exc}") from exc
+        raise not_utf8(path, exc) from None
     except OSError as exc:
         raise DataFileError(path, f"cannot read: {exc}") from exc
     if not values:

@@ -48,6 +48,7 @@ from studio.errors import DataFileError, InvalidInputError
 from studio.paths import DATA_DIR, SHARED_DATA_DIR
 from studio.physics.ball import FlightModel, TableBounceModel, spin_components
 from studio.physics.court import DEFAULT_COURT, Court
+from studio.storage.jsonfile import not_utf8
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -206,7 +207,9 @@ def load_match_events(path: str | os.PathLike[str] | None = None) -> tuple[Rally
                     )
                 player, rid, event = _parse_row(row, line, path)
                 groups.setdefault((player, rid), []).append(event)
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+    except UnicodeDecodeError as exc:
+        raise not_utf8(path, exc) from None
+    except (OSError, csv.Error) as exc:
         raise DataFileError(path, f"cannot read the match data: {exc}") from exc
     if not groups:
         raise DataFileError(path, "no data rows")

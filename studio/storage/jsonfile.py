@@ -71,10 +71,17 @@ def decode_text(data: bytes, path: str | Path, *, line: int | None = None) -> st
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as err:
-        where = f"line {line}: " if line is not None else ""
-        raise DataFileError(
-            path, f"{where}not UTF-8 text (byte 0x{data[err.start]:02x} at offset {err.start}); save the file as UTF-8"
-        ) from None
+        raise not_utf8(path, err, line=line) from None
+
+
+def not_utf8(path: str | Path, err: UnicodeDecodeError, *, line: int | None = None) -> DataFileError:
+    """The project's one message for a file that is not UTF-8 text: the first bad byte and
+    its offset (in the decoded chunk: the file, the line, or the reader's buffer)."""
+    where = f"line {line}: " if line is not None else ""
+    bad = err.object[err.start] if err.start < len(err.object) else 0
+    return DataFileError(
+        path, f"{where}not UTF-8 text (byte 0x{bad:02x} at offset {err.start}); save the file as UTF-8"
+    )
 
 
 def parse_json(
