@@ -370,3 +370,13 @@ def test_relative_rotation_vectors_match_scipy_including_half_turns() -> None:
         np.testing.assert_allclose(_relative_rotvecs(R), expected, atol=1e-9)
     half = np.stack([np.eye(3), Rotation.from_rotvec([0.0, np.pi, 0.0]).as_matrix()])
     assert np.isclose(np.linalg.norm(_relative_rotvecs(half)[0]), np.pi)
+
+
+def test_racket_models_file_that_is_not_utf8_names_the_file(tmp_path: Path) -> None:
+    """A racket-model JSON saved in Latin-1: DataFileError naming the file, not a raw
+    UnicodeDecodeError (the reader caught only OSError)."""
+    bad = tmp_path / "racket_models.json"
+    bad.write_bytes(B.RACKET_MODELS_JSON.read_bytes().replace(b'"', b'"\xe9', 1))
+    with pytest.raises(DataFileError, match=r"racket_models\.json: not UTF-8 text \(byte 0xe9") as info:
+        B._load_racket_models(bad)
+    assert info.value.path == str(bad)

@@ -103,3 +103,29 @@ def test_runs_folder_of_another_limit_scale_is_refused(tmp_path: Path) -> None:
     (run_dir / "run.json").write_text("[1, 2]")
     with pytest.raises(InvalidInputError, match="run.json: schema must be"):
         finished_runs(same)
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        (b'{"reward": 0.5, "row": ', "exported.json: .*JSON"),  # cut short by a kill
+        (b"[1, 2]", "exported.json: expected a JSON object"),
+        (b'{"reward": "high", "row": {}}', "exported.json: field 'reward' must be a number"),
+        (b'{"reward": 0.5, "row": [1]}', "'row' an object"),
+        (b'{"reward": 0.5, "row": {}}\xff', "exported.json: not UTF-8 text"),
+    ],
+)
+def test_corrupt_exported_json_of_a_finished_run_names_the_file(tmp_path: Path, text: bytes, match: str) -> None:
+    """A finished run's exported.json that cannot be read stops the report (and a resumed
+    training) with the file named, not a raw JSON or type error; the file is left as it is."""
+    from studio.errors import DataFileError
+    from studio.optimize.training import finished_runs
+
+    cfg = TrainConfig(task="backspin", count=1, side="right", runs_dir=tmp_path)
+    (_, _, _, run_dir) = cfg.jobs()[0]
+    run_dir.mkdir(parents=True)
+    (run_dir / "exported.json").write_bytes(text)
+    with pytest.raises(DataFileError, match=match) as info:
+        finished_runs(cfg)
+    assert info.value.path == str(run_dir / "exported.json")
+    assert (run_dir / "exported.json").read_bytes() == text

@@ -377,14 +377,20 @@ def _already(index: int, run_dir: Path, cfg: TrainConfig) -> TrainedServe | None
     done = run_dir / "exported.json"
     if not done.exists():
         return None
-    d = json.loads(done.read_text())
-    reward = d.get("reward")
+    from studio.storage.jsonfile import read_json_file
+
+    d = read_json_file(done)
+    if not isinstance(d, dict):
+        raise DataFileError(done, "expected a JSON object (a finished run's exported.json)")
+    reward, row = d.get("reward"), d.get("row", {})
+    if not (reward is None or isinstance(reward, (int, float))) or not isinstance(row, dict):
+        raise DataFileError(done, "field 'reward' must be a number (or null) and 'row' an object")
     return TrainedServe(
         index,
         run_dir,
         bool(d.get("legal", d.get("id") is not None)),
         math.nan if reward is None else float(reward),
-        dict(d.get("row", {})),
+        dict(row),
         d.get("id"),
         0.0,
         "already trained",

@@ -54,6 +54,7 @@ from studio import constants as C
 from studio.errors import DataFileError, InvalidInputError
 from studio.paths import DATA_DIR
 from studio.physics.court import DEFAULT_COURT, Court
+from studio.storage.jsonfile import not_utf8
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -797,6 +798,8 @@ def _load_racket_models(path: Path) -> dict[str, RacketModel]:
 def _load_racket_models_cached(path: str) -> tuple[tuple[str, RacketModel], ...]:
     try:
         text = Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise not_utf8(path, exc) from None
     except OSError as exc:
         raise DataFileError(path, f"cannot read racket models: {exc}") from exc
     try:

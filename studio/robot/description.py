@@ -64,6 +64,7 @@ import numpy as np
 from studio import constants as C
 from studio.errors import RobotModelError
 from studio.paths import robots_dir
+from studio.storage.jsonfile import not_utf8_message
 
 ROBOT_NAME: Final[str] = "serve_robot"
 """Stem of the robot files in ``robots/``."""
@@ -690,6 +691,8 @@ def load_spec(path: str | Path | None = None) -> RobotSpec:
     p = Path(path) if path is not None else default_toml_path()
     try:
         text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise RobotModelError(f"{p}: robot description {not_utf8_message(exc)}") from None
     except OSError as exc:
         raise RobotModelError(f"{p}: cannot read robot description: {exc.strerror or exc}") from exc
     try:

@@ -74,14 +74,17 @@ def decode_text(data: bytes, path: str | Path, *, line: int | None = None) -> st
         raise not_utf8(path, err, line=line) from None
 
 
-def not_utf8(path: str | Path, err: UnicodeDecodeError, *, line: int | None = None) -> DataFileError:
-    """The project's one message for a file that is not UTF-8 text: the first bad byte and
-    its offset (in the decoded chunk: the file, the line, or the reader's buffer)."""
-    where = f"line {line}: " if line is not None else ""
+def not_utf8_message(err: UnicodeDecodeError) -> str:
+    """The project's one wording for text that is not UTF-8: the first bad byte and its
+    offset (in the decoded chunk: the file, the line, or the reader's buffer)."""
     bad = err.object[err.start] if err.start < len(err.object) else 0
-    return DataFileError(
-        path, f"{where}not UTF-8 text (byte 0x{bad:02x} at offset {err.start}); save the file as UTF-8"
-    )
+    return f"not UTF-8 text (byte 0x{bad:02x} at offset {err.start}); save the file as UTF-8"
+
+
+def not_utf8(path: str | Path, err: UnicodeDecodeError, *, line: int | None = None) -> DataFileError:
+    """DataFileError naming ``path`` (and ``line``) with :func:`not_utf8_message`."""
+    where = f"line {line}: " if line is not None else ""
+    return DataFileError(path, where + not_utf8_message(err))
 
 
 def parse_json(
