@@ -34,15 +34,20 @@ NAMES = ("backspin_right", "topspin_right", "sidespin_right")
 
 @pytest.fixture(scope="module")
 def library(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A library of three evaluated example serves (right toss)."""
+    """A library of three evaluated example serves (right toss); the backspin one planned with
+    the paper's dynamic limit expansion (x1.5 acceleration and jerk), for the limits column."""
+    from dataclasses import replace
+
     from studio.serve.evaluate import EvaluationContext, evaluate_serve
-    from studio.serve.params import load_serve
+    from studio.serve.params import LimitScale, load_serve
 
     folder = tmp_path_factory.mktemp("library")
     context = EvaluationContext.default()
     lib = ServeLibrary(folder)
     for name in NAMES:
         serve = load_serve(SERVES / f"{name}.json")
+        if name == "backspin_right":
+            serve = replace(serve, limit_scale=LimitScale(acceleration=1.5, jerk=1.5))
         ev = evaluate_serve(serve, context, task=serve.task or "topspin_velocity")
         lib.add(ev, provenance={"kind": "hand-designed", "file": f"{name}.json"}, task=serve.task)
     return folder
