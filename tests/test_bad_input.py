@@ -217,3 +217,14 @@ def test_a_file_system_refusal_is_a_message_naming_the_path(tmp_path: Path, caps
     err = capsys.readouterr().err
     assert code == 2 and f"{blocker / 'sub'}: Not a directory" in err and "Traceback" not in err
     assert blocker.read_text(encoding="utf-8") == "x"
+
+
+def test_not_utf8_offsets_count_a_byte_order_mark() -> None:
+    """``utf-8-sig`` counts after the byte-order mark; the message gives the file's offset."""
+    from studio.errors import DataFileError
+    from studio.storage.jsonfile import decode_text
+
+    for data, offset in ((b'{"a": "caf\xe9"}', 10), (b'\xef\xbb\xbf{"a": "caf\xe9"}', 13)):
+        with pytest.raises(DataFileError, match=rf"f\.json: not UTF-8 text \(byte 0xe9 at offset {offset}\)"):
+            decode_text(data, "f.json")
+        assert data[offset] == 0xE9

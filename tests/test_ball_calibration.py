@@ -134,7 +134,10 @@ def test_serve_contacts_loader_names_file_line_and_column(tmp_path: Path) -> Non
     with pytest.raises(DataFileError, match="missing column"):
         BC.load_serve_contacts_csv(p)
     p.write_bytes(b"\xff\xfe\x00")
-    with pytest.raises(DataFileError, match=r"not UTF-8 text \(byte 0xff at offset 0\); save the file as UTF-8"):
+    with pytest.raises(DataFileError, match=r"line 1: not UTF-8 text \(byte 0xff at offset 0\); save the file as UTF-8"):
+        BC.load_serve_contacts_csv(p)
+    p.write_bytes(header.encode() + b"\n" + b'"' + b"x" * 200_000 + b'"\n')  # beyond the csv module's field limit
+    with pytest.raises(DataFileError, match="c.csv: cannot read: field larger than field limit"):
         BC.load_serve_contacts_csv(p)
     with pytest.raises(DataFileError, match="cannot read"):
         BC.load_serve_contacts_csv(tmp_path / "missing.csv")
@@ -162,7 +165,8 @@ def test_racket_bounce_csv_that_is_not_utf8_is_a_data_file_error(tmp_path: Path)
     UnicodeDecodeError (the reader caught only OSError)."""
     header = ",".join(BC.REQUIRED_COLUMNS)
     p = tmp_path / "bounces.csv"
-    p.write_bytes(header.encode() + b"\n" + b"caf\xe9," * (len(BC.REQUIRED_COLUMNS) - 1) + b"x\n")
-    with pytest.raises(DataFileError, match=r"not UTF-8 text \(byte 0xe9 at offset \d+\)") as info:
+    head = header.encode() + b"\n"
+    p.write_bytes(head + b"caf\xe9," * (len(BC.REQUIRED_COLUMNS) - 1) + b"x\n")
+    with pytest.raises(DataFileError, match=rf"line 2: not UTF-8 text \(byte 0xe9 at offset {len(head) + 3}\)") as info:
         BC.load_bounce_csv(p)
     assert info.value.path == str(p)

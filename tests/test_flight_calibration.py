@@ -111,10 +111,18 @@ def test_missing_file_column_and_empty_file(tmp_path: Path) -> None:
         F.load_match_events(tmp_path / "empty.csv")
 
 
-def test_match_file_that_is_not_utf8_names_the_byte(tmp_path: Path) -> None:
+@pytest.mark.parametrize("bom", [b"", b"\xef\xbb\xbf"])
+def test_match_file_that_is_not_utf8_names_the_byte_offset_and_line(tmp_path: Path, bom: bytes) -> None:
+    """The bad byte far beyond the reader's first buffer (and after a byte-order mark): the
+    message gives the file's own offset and line, not the stream buffer's."""
+    good = "P,/g/r/event{},shot_p1,{}.0,[1 2 3],[1 2 3],[0 0 0]\n"
+    body = bom + (HEADER + "".join(good.format(i, i) for i in range(1, 400))).encode()
+    bad = b"P\xe9,/g/r/event999,shot_p1,999.0,[1 2 3],[1 2 3],[0 0 0]\n"
     path = tmp_path / "latin1.csv"
-    path.write_bytes(HEADER.encode() + b"P\xe9,/g/r/event1,shot_p1,1.0,[1 2 3],[1 2 3],[0 0 0]\n")
-    with pytest.raises(DataFileError, match=r"not UTF-8 text \(byte 0xe9 at offset \d+\); save the file as UTF-8") as info:
+    path.write_bytes(body + bad)
+    assert len(body) > 16_384
+    line = body.count(b"\n") + 1
+    with pytest.raises(DataFileError, match=rf"line {line}: not UTF-8 text \(byte 0xe9 at offset {len(body) + 1}\)") as info:
         F.load_match_events(path)
     assert info.value.path == str(path)
 

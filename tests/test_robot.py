@@ -422,7 +422,7 @@ def test_malformed_toml_names_the_key(tmp_path: Path) -> None:
     with pytest.raises(RobotModelError, match="root"):
         rd.load_spec(bad)
     bad.write_bytes(text.encode().replace(b"# ", b"# \xe9", 1))
-    with pytest.raises(RobotModelError, match=r"bad\.toml: robot description not UTF-8 text \(byte 0xe9"):
+    with pytest.raises(RobotModelError, match=r"bad\.toml: the robot description is not UTF-8 text \(byte 0xe9"):
         rd.load_spec(bad)
     bad.write_text("this is = not toml =")
     with pytest.raises(RobotModelError, match="not valid TOML"):

@@ -110,14 +110,19 @@ def test_runs_folder_of_another_limit_scale_is_refused(tmp_path: Path) -> None:
     [
         (b'{"reward": 0.5, "row": ', "exported.json: .*JSON"),  # cut short by a kill
         (b"[1, 2]", "exported.json: expected a JSON object"),
-        (b'{"reward": "high", "row": {}}', "exported.json: field 'reward' must be a number"),
-        (b'{"reward": 0.5, "row": [1]}', "'row' an object"),
+        (b'{"reward": "high", "row": {}}', "exported.json: field 'reward': unexpected value 'high'"),
+        (b'{"reward": true, "row": {}}', "field 'reward': unexpected value True"),
+        (b'{"reward": 0.5, "row": [1]}', "field 'row': unexpected value \\[1\\]"),
+        (b'{"reward": 0.5, "row": {"topback": "x"}}', "field 'row'"),
+        (b'{"legal": "no", "reward": 0.5}', "field 'legal': unexpected value 'no'"),
+        (b'{"id": {"a": 1}, "reward": 0.5}', "field 'id'"),
         (b'{"reward": 0.5, "row": {}}\xff', "exported.json: not UTF-8 text"),
     ],
 )
 def test_corrupt_exported_json_of_a_finished_run_names_the_file(tmp_path: Path, text: bytes, match: str) -> None:
-    """A finished run's exported.json that cannot be read stops the report (and a resumed
-    training) with the file named, not a raw JSON or type error; the file is left as it is."""
+    """A finished run's exported.json that cannot be read stops the report (``finished_runs``,
+    which a resumed training calls first through the same reader) with the file and field
+    named, not a raw JSON or type error; the file is left as it is."""
     from studio.errors import DataFileError
     from studio.optimize.training import finished_runs
 
@@ -134,7 +139,7 @@ def test_corrupt_exported_json_of_a_finished_run_names_the_file(tmp_path: Path, 
 SEEDED = Path(__file__).resolve().parent.parent / "experiments" / "table2_seeded" / "backspin"
 
 
-def test_the_seeded_table2_backspin_row_meets_the_target_and_reproduces(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_seeded_table2_backspin_row_meets_the_target_and_its_serves_evaluate_the_same(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """experiments/table2/RESULTS.md: the 25 seeded backspin runs, all legal, −250.8 ± 14.4
     rad/s after the second bounce (issue #13's target: <= −100 with >= 20 of 25 legal), read
     straight from the committed exported.json files; two chosen serves (one per toss side)

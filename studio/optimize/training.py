@@ -58,6 +58,7 @@ import numpy as np
 
 from studio.errors import DataFileError, InvalidInputError, StudioError
 from studio.serve.params import HandServe, LimitScale, TossSide
+from studio.storage.jsonfile import read_json_file
 from studio.storage.jsonlog import write_line
 
 # Ray >= 2.45 notices a driver started by ``uv run`` (as ``./dev`` does) and starts its
@@ -377,24 +378,40 @@ def _already(index: int, run_dir: Path, cfg: TrainConfig) -> TrainedServe | None
     done = run_dir / "exported.json"
     if not done.exists():
         return None
-    from studio.storage.jsonfile import read_json_file
-
-    d = read_json_file(done)
-    if not isinstance(d, dict):
-        raise DataFileError(done, "expected a JSON object (a finished run's exported.json)")
-    reward, row = d.get("reward"), d.get("row", {})
-    if not (reward is None or isinstance(reward, (int, float))) or not isinstance(row, dict):
-        raise DataFileError(done, "field 'reward' must be a number (or null) and 'row' an object")
+    d = _finished_record(done)
+    reward = d.get("reward")
     return TrainedServe(
         index,
         run_dir,
         bool(d.get("legal", d.get("id") is not None)),
         math.nan if reward is None else float(reward),
-        dict(row),
+        dict(d.get("row", {})),
         d.get("id"),
         0.0,
         "already trained",
     )
+
+
+def _finished_record(path: Path) -> dict[str, Any]:
+    """A finished run's ``exported.json``, its fields checked (DataFileError naming the
+    file and the field): ``legal`` a bool, ``id`` a string or null, ``reward`` a number or
+    null, ``row`` an object of finite numbers (the summary's ball state)."""
+    d = read_json_file(path)
+    if not isinstance(d, dict):
+        raise DataFileError(path, "expected a JSON object (a finished run's exported.json)")
+    checks = {
+        "legal": lambda v: isinstance(v, bool),
+        "id": lambda v: v is None or isinstance(v, str),
+        "reward": lambda v: v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)),
+        "row": lambda v: (
+            isinstance(v, dict)
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v.values())
+        ),
+    }
+    for key, ok in checks.items():
+        if key in d and not ok(d[key]):
+            raise DataFileError(path, f"field {key!r}: unexpected value {d[key]!r} for a finished run")
+    return d
 
 
 def finished_runs(cfg: TrainConfig) -> list[TrainedServe]:

@@ -45,7 +45,7 @@ from studio.physics.ball import (
     _local_frame,
     simulate,
 )
-from studio.storage.jsonfile import not_utf8
+from studio.storage.jsonfile import not_utf8_file
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -132,7 +132,7 @@ def load_bounce_csv(path: str | os.PathLike[str]) -> BounceRows:
     """
     path = Path(path)
     try:
-        with path.open(newline="", encoding="utf-8") as fh:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
             reader = csv.reader(fh)
             try:
                 header = [h.strip() for h in next(reader)]
@@ -165,9 +165,9 @@ def load_bounce_csv(path: str | os.PathLike[str]) -> BounceRows:
                     raise DataFileError(
                         path, f"line {line_no}, column 'v_out_z': ball must leave the face (> 0), got {vz_out}"
                     )
-    except UnicodeDecodeError as exc:
-        raise not_utf8(path, exc) from None
-    except OSError as exc:
+    except UnicodeDecodeError:
+        raise not_utf8_file(path) from None
+    except (OSError, csv.Error) as exc:
         raise DataFileError(path, f"cannot read: {exc}") from exc
     if not values:
         raise DataFileError(path, "no data rows")
@@ -216,7 +216,7 @@ def _read_numeric_csv(path: Path, columns: Sequence[str]) -> tuple[FloatArray, l
     """(N, len(columns)) finite values, the raw rows and their line numbers in the file;
     DataFileError naming line and column."""
     try:
-        with path.open(newline="", encoding="utf-8") as fh:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
             reader = csv.DictReader(fh)
             missing = [c for c in columns if c not in (reader.fieldnames or [])]
             if missing:
@@ -232,9 +232,9 @@ def _read_numeric_csv(path: Path, columns: Sequence[str]) -> tuple[FloatArray, l
                 values.append(rec)
                 raw.append(row)
                 lines.append(line_no)
-    except UnicodeDecodeError as exc:
-        raise not_utf8(path, exc) from None
-    except OSError as exc:
+    except UnicodeDecodeError:
+        raise not_utf8_file(path) from None
+    except (OSError, csv.Error) as exc:
         raise DataFileError(path, f"cannot read: {exc}") from exc
     if not values:
         raise DataFileError(path, "no data rows")

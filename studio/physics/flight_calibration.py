@@ -48,7 +48,7 @@ from studio.errors import DataFileError, InvalidInputError
 from studio.paths import DATA_DIR, SHARED_DATA_DIR
 from studio.physics.ball import FlightModel, TableBounceModel, spin_components
 from studio.physics.court import DEFAULT_COURT, Court
-from studio.storage.jsonfile import not_utf8
+from studio.storage.jsonfile import not_utf8_file
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -194,7 +194,7 @@ def load_match_events(path: str | os.PathLike[str] | None = None) -> tuple[Rally
         )
     groups: dict[tuple[str, str], list[MatchEvent]] = {}
     try:
-        with path.open(newline="", encoding="utf-8") as fh:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
             reader = csv.DictReader(fh)
             missing = [c for c in COLUMNS if c not in (reader.fieldnames or [])]
             if missing:
@@ -207,8 +207,8 @@ def load_match_events(path: str | os.PathLike[str] | None = None) -> tuple[Rally
                     )
                 player, rid, event = _parse_row(row, line, path)
                 groups.setdefault((player, rid), []).append(event)
-    except UnicodeDecodeError as exc:
-        raise not_utf8(path, exc) from None
+    except UnicodeDecodeError:
+        raise not_utf8_file(path) from None
     except (OSError, csv.Error) as exc:
         raise DataFileError(path, f"cannot read the match data: {exc}") from exc
     if not groups:

@@ -692,7 +692,7 @@ def load_spec(path: str | Path | None = None) -> RobotSpec:
     try:
         text = p.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
-        raise RobotModelError(f"{p}: robot description {not_utf8_message(exc)}") from None
+        raise RobotModelError(f"{p}: the robot description is {not_utf8_message(exc)}") from None
     except OSError as exc:
         raise RobotModelError(f"{p}: cannot read robot description: {exc.strerror or exc}") from exc
     try:

@@ -18,6 +18,7 @@ a traceback, a hang or an exhausted memory:
 
 from __future__ import annotations
 
+import codecs
 import json
 import math
 import os
@@ -71,20 +72,38 @@ def decode_text(data: bytes, path: str | Path, *, line: int | None = None) -> st
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as err:
-        raise not_utf8(path, err, line=line) from None
+        raise not_utf8(path, err, line=line, skipped=_bom(data)) from None
 
 
-def not_utf8_message(err: UnicodeDecodeError) -> str:
+def _bom(data: bytes) -> int:
+    """Bytes of a leading UTF-8 byte-order mark (``utf-8-sig`` drops them before counting)."""
+    return len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0
+
+
+def not_utf8_message(err: UnicodeDecodeError, *, skipped: int = 0) -> str:
     """The project's one wording for text that is not UTF-8: the first bad byte and its
-    offset (in the decoded chunk: the file, the line, or the reader's buffer)."""
+    offset (``err``'s offset plus ``skipped`` bytes the decoder did not see)."""
     bad = err.object[err.start] if err.start < len(err.object) else 0
-    return f"not UTF-8 text (byte 0x{bad:02x} at offset {err.start}); save the file as UTF-8"
+    return f"not UTF-8 text (byte 0x{bad:02x} at offset {err.start + skipped}); save the file as UTF-8"
 
 
-def not_utf8(path: str | Path, err: UnicodeDecodeError, *, line: int | None = None) -> DataFileError:
+def not_utf8(path: str | Path, err: UnicodeDecodeError, *, line: int | None = None, skipped: int = 0) -> DataFileError:
     """DataFileError naming ``path`` (and ``line``) with :func:`not_utf8_message`."""
     where = f"line {line}: " if line is not None else ""
-    return DataFileError(path, where + not_utf8_message(err))
+    return DataFileError(path, where + not_utf8_message(err, skipped=skipped))
+
+
+def not_utf8_file(path: str | Path) -> DataFileError:
+    """DataFileError for a text file that failed to decode while read as a stream (whose
+    error counts from the stream's buffer, not the file): the file's first bad byte, its
+    offset and line, found by decoding the file's bytes again (the error path only)."""
+    data = read_file_bytes(path)
+    try:
+        data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        skipped = _bom(data)
+        return not_utf8(path, err, line=data.count(b"\n", 0, err.start + skipped) + 1, skipped=skipped)
+    return DataFileError(path, "not UTF-8 text; save the file as UTF-8")
 
 
 def parse_json(
