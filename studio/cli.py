@@ -720,9 +720,9 @@ def _add_robustify_parser(
     )
     p.add_argument(
         "--sigma",
-        type=_bounded(float, 1e-6, 1.0),
+        type=_bounded(float, 1e-6, 0.5),
         default=0.03,
-        help="CMA-ES step on the normalized genome (default 0.03)",
+        help="CMA-ES step on the normalized genome, at most 0.5 (default 0.03)",
     )
     p.add_argument(
         "--evaluations",
@@ -730,7 +730,7 @@ def _add_robustify_parser(
         default=600,
         help="candidates in all, in whole generations of 12 (default 600, ~1 min); a resume counts the logged ones",
     )
-    p.add_argument("--seed", type=_bounded(int, 0, 2**32 - 1), default=0)
+    p.add_argument("--seed", type=_bounded(int, 0, 2**31 - 2), default=0)
     p.add_argument(
         "--out", default=None, help="where to write the robust serve (default: <serve>_robust.json beside it)"
     )

@@ -105,3 +105,7 @@ def test_signed_spin_form_has_a_slope_through_topspin() -> None:
     assert reward(**state, w2=[0.0, 250.0, 0.0], weights=top).r_topback == pytest.approx(2.0 * 0.75)
     with pytest.raises(InvalidInputError, match="spin_form"):
         RewardWeights(spin_form="linear")  # type: ignore[arg-type]
+    with pytest.raises(InvalidInputError, match="one direction"):
+        RewardWeights(g_top=1.0, g_back=1.0, spin_form="signed")  # a constant: no signal at all
+    # every legal serve (r >= 0 here) scores above every illegal one (s_leg <= -0.1, rules.py)
+    assert min(r_signed) >= 0.0

@@ -189,3 +189,10 @@ def test_resume_under_other_models_is_refused(tmp_path: Path) -> None:
 
     with pytest.raises(DataFileError, match="field 'start'"):
         robustify_serve(START, RobustifyOptions(bounds=BOUNDS, evaluations=24), score=Other(), run_dir=tmp_path, resume=True)
+
+
+def test_options_refuse_an_unknown_task_and_wrong_bounds_on_construction() -> None:
+    with pytest.raises(InvalidInputError, match="unknown task 'nope'"):
+        RobustifyOptions(task="nope")
+    with pytest.raises(InvalidInputError, match="bounds must be a GenomeBounds, got dict"):
+        RobustifyOptions(bounds={"offset": 0.07})  # type: ignore[arg-type]

@@ -257,6 +257,12 @@ class RobustifyOptions:
 
     def __post_init__(self) -> None:
         _check_settings(self.keep_spin, self.sigma, self.evaluations, self.population, self.seed)
+        if self.task is not None:
+            from studio.serve.reward import task_weights
+
+            task_weights(self.task)  # an unknown task: InvalidInputError naming the known ones
+        if self.bounds is not None and not isinstance(self.bounds, GenomeBounds):
+            raise InvalidInputError(f"robustify: bounds must be a GenomeBounds, got {type(self.bounds).__name__}")
 
 
 def _model_scorer(context: Any, task: str) -> tuple[ScoreFn, Any]:

@@ -82,7 +82,7 @@ class RewardWeights:
     a legal serve still scores >= 0 and above every illegal one. With the paper's form
     a backspin run has no slope on the plateau of topspin serves (every serve flown
     through two table bounces leaves with topspin unless the racket gave it a lot of
-    backspin): see ``docs/optimization.md#table-ii``."""
+    backspin): see ``docs/optimization.md#the-full-experiment-4-tasks-25-serves-each``."""
     g_side: float = 0.0
     """Gain of r_side = g_side * phi(w_ss_hat)."""
     side_direction: Literal[-1, 1] | None = None
@@ -128,6 +128,11 @@ class RewardWeights:
                 raise InvalidInputError(f"RewardWeights.{name} must be >= 0 (the paper's gains are non-negative)")
         if self.spin_form not in ("paper", "signed"):
             raise InvalidInputError(f"RewardWeights.spin_form must be 'paper' or 'signed', got {self.spin_form!r}")
+        if self.spin_form == "signed" and self.g_top > 0 and self.g_back > 0:
+            raise InvalidInputError(
+                "RewardWeights: spin_form='signed' rewards one direction; with both g_top and g_back > 0 "
+                "r_top + r_back would not depend on the spin (use spin_form='paper' for either direction)"
+            )
         if self.spin_at not in ("second_bounce", "net"):
             raise InvalidInputError(f"RewardWeights.spin_at must be 'second_bounce' or 'net', got {self.spin_at!r}")
 
