@@ -395,18 +395,20 @@ def _already(index: int, run_dir: Path, cfg: TrainConfig) -> TrainedServe | None
 def _finished_record(path: Path) -> dict[str, Any]:
     """A finished run's ``exported.json``, its fields checked (DataFileError naming the
     file and the field): ``legal`` a bool, ``id`` a string or null, ``reward`` a number or
-    null, ``row`` an object of finite numbers (the summary's ball state)."""
+    null, ``row`` an object of numbers (the summary's ball state; :func:`read_json_file`
+    already refuses non-finite numbers)."""
     d = read_json_file(path)
     if not isinstance(d, dict):
         raise DataFileError(path, "expected a JSON object (a finished run's exported.json)")
+
+    def number(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
     checks = {
         "legal": lambda v: isinstance(v, bool),
         "id": lambda v: v is None or isinstance(v, str),
-        "reward": lambda v: v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)),
-        "row": lambda v: (
-            isinstance(v, dict)
-            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v.values())
-        ),
+        "reward": lambda v: v is None or number(v),
+        "row": lambda v: isinstance(v, dict) and all(number(x) for x in v.values()),
     }
     for key, ok in checks.items():
         if key in d and not ok(d[key]):
